@@ -1,0 +1,153 @@
+"""Command line: ``dea-twin curve`` and ``dea-twin solve``.
+
+Thin layer over :class:`~.twin.ArrayTwin`: parses arguments, runs the solves, prints
+a labelled table (mm, N, pF) or JSON in SI units.  Exit codes: 0 ok, 1 the solver
+failed, 2 bad arguments or config.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Sequence
+
+import numpy as np
+
+from .config import ConfigError
+from .configfile import load_config
+from .model import DRIVEN, FREE
+from .solver import ConvergenceError
+from .twin import ArrayTwin, TwinResult
+
+
+def _floats(text: str) -> list[float]:
+    """Parse ``"0,0.015,0"`` (or space separated) into floats."""
+    try:
+        return [float(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}") from None
+
+
+def _neighbours(text: str) -> str | float:
+    if text == FREE:
+        return FREE
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'free' or a displacement in m, got {text!r}") from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``dea-twin`` argument parser."""
+    parser = argparse.ArgumentParser(prog="dea-twin", description=(
+        "Finite-element digital twin of a soft array of dielectric-elastomer transducers. "
+        "SI units: displacements in m, voltages in V."))
+    sub = parser.add_subparsers(dest="command", required=True)
+    curve = sub.add_parser("curve", help="force/capacitance of every unit while one unit is swept")
+    curve.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
+    curve.add_argument("--unit", type=int, default=2, help="unit to sweep, 1-based (default 2)")
+    curve.add_argument("--to", type=float, default=0.015, dest="to", help="final displacement [m] (default 0.015)")
+    curve.add_argument("--steps", type=int, default=15, help="number of equal steps (N+1 rows; default 15)")
+    curve.add_argument("--voltage", type=float, default=0.0, help="voltage on the swept unit [V] (default 0)")
+    curve.add_argument("--neighbours", type=_neighbours, default=FREE,
+                       help="'free' (default) or a displacement [m] at which the other units are driven")
+    curve.add_argument("--json", action="store_true", help="print one JSON object (SI units)")
+    solve = sub.add_parser("solve", help="one equilibrium state")
+    solve.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
+    solve.add_argument("--displacement", type=_floats, help="per-unit displacement [m], comma separated")
+    solve.add_argument("--voltage", type=_floats, help="per-unit voltage [V], comma separated")
+    solve.add_argument("--modes", type=lambda t: t.replace(",", " ").split(),
+                       help="per-unit mode, 'driven' or 'free', comma separated (default: all driven)")
+    solve.add_argument("--json", action="store_true", help="print one JSON object (SI units)")
+    return parser
+
+
+def _report_warnings(result: TwinResult, label: str) -> None:
+    for text in result.warnings:
+        print(f"dea-twin: warning at {label}: {text}", file=sys.stderr)
+
+
+def run_curve(args: argparse.Namespace, twin: ArrayTwin) -> dict:
+    """Sweep unit ``args.unit`` from 0 to ``args.to``; return the curve as a dict."""
+    n = twin.n_units
+    if not 1 <= args.unit <= n:
+        raise ConfigError(f"--unit must be in [1, {n}], got {args.unit}")
+    if args.steps < 1:
+        raise ConfigError(f"--steps must be >= 1, got {args.steps}")
+    k = args.unit - 1
+    modes = [FREE if args.neighbours == FREE else DRIVEN] * n
+    modes[k] = DRIVEN
+    base = np.zeros(n) if args.neighbours == FREE else np.full(n, float(args.neighbours))
+    voltage = np.zeros(n)
+    voltage[k] = args.voltage
+    if args.neighbours != FREE:  # pre-deflect the neighbours first, at 0 V
+        twin.solve(np.where(np.arange(n) == k, 0.0, base), np.zeros(n), modes)
+    displacements = np.linspace(0.0, args.to, args.steps + 1)
+    forces, caps = [], []
+    from tqdm import tqdm
+
+    for d in tqdm(displacements, desc=f"unit {args.unit} sweep", unit="step", file=sys.stderr, disable=None):
+        command = base.copy()
+        command[k] = d
+        res = twin.solve(command, voltage, modes)
+        _report_warnings(res, f"d = {d:.6g} m")
+        forces.append(res.force.tolist())
+        caps.append(res.capacitance.tolist())
+    return {"unit": args.unit, "displacement": displacements.tolist(), "force": forces, "capacitance": caps}
+
+
+def _print_curve(curve: dict) -> None:
+    n = len(curve["force"][0])
+    head = ["d [mm]"] + [f"F{i + 1} [N]" for i in range(n)] + [f"C{i + 1} [pF]" for i in range(n)]
+    print("  ".join(f"{h:>12}" for h in head))
+    for d, f, c in zip(curve["displacement"], curve["force"], curve["capacitance"]):
+        row = [d * 1e3] + list(f) + [v * 1e12 for v in c]
+        print("  ".join(f"{v:12.6f}" for v in row))
+
+
+def run_solve(args: argparse.Namespace, twin: ArrayTwin) -> TwinResult:
+    """One equilibrium for the given displacement, voltage and modes."""
+    n = twin.n_units
+    modes = args.modes or [DRIVEN] * n
+    res = twin.solve(args.displacement if args.displacement is not None else np.zeros(n),
+                     args.voltage if args.voltage is not None else np.zeros(n), modes)
+    _report_warnings(res, "the requested state")
+    return res
+
+
+def _solve_dict(res: TwinResult) -> dict:
+    keys = ("displacement", "voltage", "force", "capacitance", "delta_capacitance", "centre_deflection", "peak_field")
+    out = {k: np.asarray(getattr(res, k)).tolist() for k in keys}
+    out.update(modes=list(res.modes), stable=res.stable, wrinkled=res.wrinkled, field_exceeded=res.field_exceeded,
+               min_principal_stress=res.min_principal_stress, iterations=res.iterations, warnings=res.warnings)
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of ``dea-twin``; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        twin = ArrayTwin(load_config(args.config))
+        if args.command == "curve":
+            curve = run_curve(args, twin)
+            print(json.dumps(curve)) if args.json else _print_curve(curve)
+        else:
+            res = run_solve(args, twin)
+            if args.json:
+                print(json.dumps(_solve_dict(res)))
+            else:
+                for key, value in _solve_dict(res).items():
+                    print(f"{key}: {value}")
+    except (ConfigError, ValueError) as exc:
+        print(f"dea-twin: error: {exc}", file=sys.stderr)
+        return 2
+    except ConvergenceError as exc:
+        print(f"dea-twin: solver failed: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,154 @@
+"""The discrete membrane model of one array: mesh, material and boundary conditions.
+
+A :class:`MembraneModel` binds a configuration to its mesh and quadrature data and
+answers the questions the solver asks: which dofs are prescribed for a set of unit
+modes, their values for given indenter displacements (eqs. 8 and 9), the Maxwell
+coefficient of every element for given voltages (eq. 5), and the outputs of a state
+(eqs. 7 and 10).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .assembly import Discretisation, PointState, SparsePattern, discretise
+from .config import ArrayConfig
+from .material import energy_density, principal_cauchy_stresses
+from .mesh import Mesh, build_mesh
+
+DRIVEN, FREE = "driven", "free"
+MODES = (DRIVEN, FREE)
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """Per-unit outputs of an equilibrium state (SI units)."""
+
+    force: np.ndarray
+    capacitance: np.ndarray
+    centre_deflection: np.ndarray
+    peak_field: np.ndarray
+    min_principal_stress: float
+
+
+class MembraneModel:
+    """Mesh, quadrature and boundary conditions of the array described by ``cfg``.
+
+    Parameters
+    ----------
+    cfg : ArrayConfig
+        The array.  Its mesh is built (or taken from the cache) here.
+    """
+
+    def __init__(self, cfg: ArrayConfig):
+        self.cfg = cfg
+        self.mesh: Mesh = build_mesh(cfg)
+        self.disc: Discretisation = discretise(self.mesh)
+        self.pattern = SparsePattern(self.disc.dofs, self.disc.n_dofs)
+        self.yeoh = cfg.yeoh
+        self.thickness = cfg.thickness
+        mesh = self.mesh
+        self._unit_elements = [np.flatnonzero(mesh.element_unit == k) for k in range(cfg.n_units)]
+        self._disk_elements = [np.flatnonzero((mesh.element_unit == k) & mesh.element_in_indenter)
+                               for k in range(cfg.n_units)]
+        #: Reference area [m^2] of each unit's meshed electrode.
+        self.electrode_area = np.array([self.disc.weight[e].sum() for e in self._unit_elements])
+        #: Capacitance [F] of each unit in the flat pre-stretched state (det C = lp^4).
+        self.flat_capacitance = cfg.permittivity / cfg.thickness * cfg.prestretch**4 * self.electrode_area
+        #: Force scale [N] for convergence tests: t0 * c10 * D.
+        self.force_scale = cfg.thickness * cfg.c10 * cfg.scaled("electrode_diameter")
+        #: Length scale [m] for convergence tests: D.
+        self.length_scale = cfg.scaled("electrode_diameter")
+
+    @property
+    def n_units(self) -> int:
+        """Number of units."""
+        return self.cfg.n_units
+
+    def flat_state(self) -> np.ndarray:
+        """Positions of the flat pre-stretched membrane, ``x = lp X, z = 0`` (shape (n_dofs,))."""
+        x = np.zeros((self.mesh.n_nodes, 3))
+        x[:, :2] = self.cfg.prestretch * self.mesh.nodes
+        return x.ravel()
+
+    def check_modes(self, modes: Sequence[str]) -> tuple[str, ...]:
+        """Validate a per-unit mode sequence and return it as a tuple."""
+        modes = tuple(modes)
+        if len(modes) != self.n_units or any(m not in MODES for m in modes):
+            raise ValueError(f"modes must be {self.n_units} values out of {MODES}, got {modes}")
+        return modes
+
+    def prescribed_dofs(self, modes: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """Sorted prescribed and free dof numbers for the given unit modes.
+
+        Prescribed: every dof of the frame nodes (eq. 8) and of the indenter disk of
+        each driven unit (eq. 9).
+        """
+        nodes = [self.mesh.frame_nodes] + [self.mesh.indenter_nodes[k] for k, m in enumerate(modes) if m == DRIVEN]
+        fixed = np.unique(np.concatenate(nodes))
+        dofs = (3 * fixed[:, None] + np.arange(3)).ravel()
+        mask = np.ones(self.disc.n_dofs, dtype=bool)
+        mask[dofs] = False
+        return dofs, np.flatnonzero(mask)
+
+    def apply_prescribed(self, x: np.ndarray, modes: Sequence[str], displacement: np.ndarray) -> None:
+        """Set the prescribed positions in ``x`` in place (eqs. 8, 9).
+
+        Frame nodes sit at ``(lp X, lp Y, 0)``; the disk of a driven unit k at
+        ``(lp X, lp Y, d_k)``.
+        """
+        lp = self.cfg.prestretch
+        xs = x.reshape(-1, 3)
+        frame = self.mesh.frame_nodes
+        xs[frame, :2] = lp * self.mesh.nodes[frame]
+        xs[frame, 2] = 0.0
+        for k, mode in enumerate(modes):
+            if mode == DRIVEN:
+                disk = self.mesh.indenter_nodes[k]
+                xs[disk, :2] = lp * self.mesh.nodes[disk]
+                xs[disk, 2] = displacement[k]
+
+    def energy(self, point: PointState, voltage: np.ndarray) -> float:
+        """Stored energy ``t0 sum_q w_q Psi`` [J] of a point state."""
+        psi = energy_density(point.c, self.yeoh, self.maxwell(voltage)[:, None])
+        return float(self.thickness * np.sum(self.disc.weight * psi))
+
+    def maxwell(self, voltage: np.ndarray) -> np.ndarray:
+        """Per element ``k = 0.5 eps0 epsr (V/t0)^2`` [Pa] of its unit, 0 on passive membrane."""
+        unit = self.mesh.element_unit
+        per_unit = 0.5 * self.cfg.permittivity * (np.asarray(voltage, float) / self.thickness) ** 2
+        return np.where(unit >= 0, np.append(per_unit, 0.0)[unit], 0.0)
+
+    def outputs(self, x: np.ndarray, forces: np.ndarray, point: PointState, voltage: np.ndarray,
+                modes: Sequence[str]) -> Outputs:
+        """Per-unit force (eq. 10), capacitance (eq. 7), centre deflection, peak field.
+
+        ``forces`` is the internal force vector at ``x`` and ``point`` its point
+        state; the force on a driven indenter is the sum of the z components over its
+        disk nodes.  The minimum principal Cauchy stress is taken over the membrane
+        outside driven disks.
+        """
+        mesh, cfg = self.mesh, self.cfg
+        c = point.c
+        det = c[..., 0] * c[..., 1] - c[..., 2] ** 2
+        weight_det = np.sum(self.disc.weight * det, axis=1)
+        z = forces.reshape(-1, 3)[:, 2]
+        cap = np.empty(self.n_units)
+        peak = np.empty(self.n_units)
+        force = np.zeros(self.n_units)
+        held = np.zeros(mesh.n_elements, dtype=bool)
+        for k, mode in enumerate(modes):
+            electrode = self._unit_elements[k]
+            cap[k] = weight_det[electrode].sum()
+            peak[k] = det[electrode].max()
+            if mode == DRIVEN:
+                force[k] = z[mesh.indenter_nodes[k]].sum()
+                held[self._disk_elements[k]] = True
+        cap *= cfg.permittivity / cfg.thickness
+        peak = np.sqrt(peak) * np.abs(np.asarray(voltage, float)) / cfg.thickness
+        sigma_min = principal_cauchy_stresses(c[~held], point.g[~held])[..., 0].min()
+        centre = x.reshape(-1, 3)[mesh.centre_nodes, 2]
+        return Outputs(force, cap, centre, peak, float(sigma_min))

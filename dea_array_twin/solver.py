@@ -1,0 +1,228 @@
+"""Newton solver for the membrane's equilibrium, with load stepping and warm starts.
+
+Equilibrium is stationarity of the total energy ``E(x)`` over the free dofs
+(paper eq. 3 in weak form): ``r_f(x) = dE/dx_f = 0``.  Each iteration solves
+``K_ff dx = -r_f`` with the consistent tangent (material + geometric stiffness,
+:mod:`.assembly`) and backtracks on the residual norm when a full step does not
+reduce it.  The solver
+
+* moves from the current state to the target along a load path (indenter
+  displacements and voltages interpolated linearly), halving the step when Newton
+  fails and growing it again after successes;
+* predicts each step with the tangent of the last converged state
+  (``x_f += -K_ff^-1 K_fp dx_p``), so small increments need one or two iterations;
+* may reuse the last factorisation for several iterations (modified Newton) and
+  refactors when the residual stops falling fast;
+* converges when the residual is below ``residual_tol * force_scale`` and the last
+  increment below ``increment_tol * length_scale``;
+* checks that the equilibrium is a stable minimum from the inertia of the
+  ``LDL^T`` factorisation of ``K_ff`` at the converged state (a Cholesky test).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from .assembly import element_tangents, internal_forces
+from .model import DRIVEN, MembraneModel
+
+
+class ConvergenceError(RuntimeError):
+    """Newton did not reach equilibrium, even after cutting the load step."""
+
+
+@dataclass(frozen=True)
+class NewtonSettings:
+    """Tolerances and limits of the Newton solver.
+
+    Attributes
+    ----------
+    residual_tol : float
+        Max |free residual| relative to the model's force scale ``t0 c10 D``.
+    increment_tol : float
+        Max |last increment| relative to the model's length scale ``D``.
+    max_iterations : int
+        Newton iterations per load step before the step counts as failed.
+    max_step_cuts : int
+        Times a load step may be halved before the solve raises.
+    modified_newton : bool
+        Reuse a factorisation across iterations while the residual falls by at
+        least ``contraction`` per iteration.
+    contraction : float
+        Required residual reduction factor per modified-Newton iteration.
+    check_stability : bool
+        Factor the tangent at the converged state and report its inertia.
+    """
+
+    residual_tol: float = 1e-9
+    increment_tol: float = 1e-9
+    max_iterations: int = 30
+    max_step_cuts: int = 12
+    modified_newton: bool = True
+    contraction: float = 0.2
+    check_stability: bool = True
+
+
+@dataclass
+class Factorisation:
+    """An LDL^T-type factorisation of ``K_ff`` and the ``K_fp`` block at one state."""
+
+    lu: object
+    k_fp: object
+    free: np.ndarray
+    prescribed: np.ndarray
+    negative_pivots: int
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``K_ff^-1 b``."""
+        return self.lu.solve(b)
+
+
+@dataclass
+class SolveStats:
+    """What one solve did."""
+
+    iterations: int = 0
+    factorisations: int = 0
+    steps: int = 0
+    step_cuts: int = 0
+    residual_norm: float = float("nan")
+    history: list = field(default_factory=list)
+
+
+def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
+    """Assemble ``K`` from element matrices and factor its free-free block.
+
+    The factorisation uses diagonal pivots in a symmetric ordering, so it is an
+    ``LDL^T`` in disguise: by Sylvester's law of inertia the number of negative
+    pivots is the number of negative eigenvalues of ``K_ff`` (0 for a stable
+    minimum).  If SuperLU had to pivot off the diagonal the inertia is unknown and
+    ``negative_pivots`` is -1.
+    """
+    values = model.pattern.values(ke)
+    k_ff = model.pattern.block(values, free, free).tocsc()  # symmetric: CSR data is CSC
+    k_fp = model.pattern.block(values, free, prescribed)
+    lu = spla.splu(k_ff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    if np.array_equal(lu.perm_r, lu.perm_c):
+        negative = int(np.count_nonzero(lu.U.diagonal() < 0))
+    else:
+        negative = -1
+    return Factorisation(lu, k_fp, free, prescribed, negative)
+
+
+class EquilibriumSolver:
+    """Solves for equilibria of one model, keeping the last factorisation for warm starts."""
+
+    def __init__(self, model: MembraneModel, settings: NewtonSettings | None = None):
+        self.model = model
+        self.settings = settings or NewtonSettings()
+        self.factorisation: Factorisation | None = None
+
+    # ------------------------------------------------------------------ one step
+    def _newton(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, maxwell: np.ndarray,
+                fact: Factorisation | None, stats: SolveStats) -> tuple | None:
+        """Newton iterations at fixed prescribed values.
+
+        Returns ``(x, r, point_state, factorisation)`` at convergence, None on failure.
+        """
+        m, s = self.model, self.settings
+        args = (m.yeoh, maxwell, m.thickness)
+        r_tol = s.residual_tol * m.force_scale
+        x_tol = s.increment_tol * m.length_scale
+        if fact is not None and not np.array_equal(fact.free, free):
+            fact = None
+        fresh = False  # whether ``fact`` was computed at the current iterate
+        r, point = internal_forces(m.disc, x, *args)
+        norm = np.linalg.norm(r[free])
+        last_dx = np.inf
+        for _ in range(s.max_iterations):
+            if not np.isfinite(norm):
+                return None
+            peak = np.abs(r[free]).max()
+            if peak <= r_tol and last_dx <= x_tol:
+                stats.residual_norm = float(peak)
+                return x, r, point, fact
+            if fact is None:
+                r, ke = element_tangents(m.disc, x, *args)
+                fact = factorise(m, ke, free, prescribed)
+                stats.factorisations += 1
+                fresh = True
+            dx = -fact.solve(r[free])
+            stats.iterations += 1
+            for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):  # backtrack on the residual norm
+                trial = x.copy()
+                trial[free] += alpha * dx
+                r_trial, point_trial = internal_forces(m.disc, trial, *args)
+                norm_trial = np.linalg.norm(r_trial[free])
+                if np.isfinite(norm_trial) and (norm_trial < norm or np.abs(r_trial[free]).max() <= r_tol):
+                    break
+            else:
+                if fresh:
+                    return None
+                fact = None  # a stale tangent failed: refactor here and retry
+                continue
+            ratio = norm_trial / norm if norm > 0 else 0.0
+            x, r, point, norm = trial, r_trial, point_trial, norm_trial
+            last_dx = alpha * np.abs(dx).max()
+            stats.history.append(float(norm))
+            if not s.modified_newton or ratio > s.contraction:
+                fact = None
+            fresh = False
+        return None
+
+    # ------------------------------------------------------------------ load path
+    def solve(self, x: np.ndarray, modes: tuple[str, ...], start_displacement: np.ndarray,
+              displacement: np.ndarray, start_voltage: np.ndarray, voltage: np.ndarray) -> tuple:
+        """Equilibrium at (``displacement``, ``voltage``) starting from state ``x``.
+
+        ``x`` is a converged state at (``start_displacement``, ``start_voltage``)
+        for driven units; it is not modified.  Returns the new positions, the
+        internal forces there, the :class:`~.assembly.PointState` there and
+        :class:`SolveStats`.  Raises :class:`ConvergenceError`.
+        """
+        m, s = self.model, self.settings
+        prescribed, free = m.prescribed_dofs(modes)
+        stats = SolveStats()
+        d0, d1 = np.asarray(start_displacement, float), np.asarray(displacement, float)
+        v0, v1 = np.asarray(start_voltage, float), np.asarray(voltage, float)
+        x = x.copy()
+        fact = self.factorisation
+        if fact is not None and not np.array_equal(fact.free, free):
+            fact = None
+        done, step, cuts = 0.0, 1.0, 0
+        while done < 1.0:
+            t = min(1.0, done + step)
+            trial = x.copy()
+            m.apply_prescribed(trial, modes, d0 + t * (d1 - d0))
+            if fact is not None:  # linear predictor from the last converged tangent
+                dxp = trial[prescribed] - x[prescribed]
+                trial[free] -= fact.solve(fact.k_fp @ dxp)
+            outcome = self._newton(trial, free, prescribed, m.maxwell(v0 + t * (v1 - v0)), fact, stats)
+            if outcome is None:
+                cuts += 1
+                stats.step_cuts = cuts
+                if cuts > s.max_step_cuts:
+                    raise ConvergenceError(
+                        f"Newton failed to converge: reached {done:.3g} of the load path after "
+                        f"{cuts - 1} step cuts (last step {step:.3g}); target displacement {d1.tolist()} m, "
+                        f"voltage {v1.tolist()} V")
+                step *= 0.5
+                fact = self.factorisation if (self.factorisation is not None
+                                              and np.array_equal(self.factorisation.free, free)) else None
+                continue
+            x, r, point, fact_used = outcome
+            done = t
+            stats.steps += 1
+            step = min(2.0 * step, 1.0)
+            if done < 1.0 or s.check_stability or fact_used is None:
+                _, ke = element_tangents(m.disc, x, m.yeoh, m.maxwell(v0 + t * (v1 - v0)), m.thickness)
+                fact = factorise(m, ke, free, prescribed)
+                stats.factorisations += 1
+            else:
+                fact = fact_used
+            self.factorisation = fact
+        return x, r, point, stats
