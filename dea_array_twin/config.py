@@ -68,6 +68,8 @@ class ArrayConfig:
         Element size far from the indenters [m, before scaling].
     mesh_size_indenter : float
         Element size on the indenter edges [m, before scaling].
+    mesh_size_electrode : float
+        Element size on the electrode edges [m, before scaling].
     max_displacement : float
         Largest |d_k| [m, before scaling] a command may ask for.
     """
@@ -93,6 +95,7 @@ class ArrayConfig:
     element_order: int = 2
     mesh_size: float = 10e-3
     mesh_size_indenter: float = 1.25e-3
+    mesh_size_electrode: float = 2.5e-3
     max_displacement: float = 0.030
 
     def __post_init__(self) -> None:
@@ -191,7 +194,7 @@ def validate(cfg: ArrayConfig) -> None:
     for name in ("rows", "cols"):
         _require(1 <= getattr(cfg, name) <= 64, name, f"must be an integer in [1, 64], got {getattr(cfg, name)}")
     positive = ("length", "width", "frame_radius", "electrode_diameter", "indenter_radius", "scale",
-                "thickness", "mesh_size", "mesh_size_indenter", "max_displacement", "breakdown_field")
+                "thickness", "mesh_size", "mesh_size_indenter", "mesh_size_electrode", "max_displacement", "breakdown_field")
     for name in positive:
         value = getattr(cfg, name)
         _require(math.isfinite(value) and value > 0, name, f"must be a finite number > 0, got {value}")
@@ -203,8 +206,9 @@ def validate(cfg: ArrayConfig) -> None:
     _require(1.0 < cfg.prestretch <= 5.0, "prestretch",
              f"must be in (1, 5]: a membrane at lp <= 1 is slack, got {cfg.prestretch}")
     _require(cfg.element_order in (1, 2), "element_order", f"must be 1 or 2, got {cfg.element_order}")
-    _require(cfg.mesh_size_indenter <= cfg.mesh_size, "mesh_size_indenter",
-             f"must be <= mesh_size ({cfg.mesh_size}), got {cfg.mesh_size_indenter}")
+    for name in ("mesh_size_indenter", "mesh_size_electrode"):
+        _require(getattr(cfg, name) <= cfg.mesh_size, name,
+                 f"must be <= mesh_size ({cfg.mesh_size}), got {getattr(cfg, name)}")
     half = 0.5 * cfg.electrode_diameter
     inner = half if cfg.electrode_shape == "circle" else 0.5 * math.sqrt(math.pi) * half
     _require(cfg.indenter_radius < inner, "indenter_radius",

@@ -9,6 +9,7 @@ at each unit centre, where the centre deflection is read.
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 from dataclasses import dataclass
 
@@ -67,22 +68,28 @@ class Mesh:
 
 
 def geometry_key(cfg: ArrayConfig) -> tuple:
-    """The config fields that determine the mesh (the cache key)."""
-    return (cfg.layout, cfg.rows, cfg.cols, cfg.scaled("length"), cfg.scaled("width"),
-            cfg.scaled("frame_radius"), cfg.scaled("electrode_diameter"), cfg.pitch,
-            cfg.scaled("indenter_radius"), cfg.electrode_shape, cfg.element_order,
-            cfg.scaled("mesh_size"), cfg.scaled("mesh_size_indenter"))
+    """The config fields that determine the unscaled mesh (the cache key)."""
+    return (cfg.layout, cfg.rows, cfg.cols, cfg.length, cfg.width, cfg.frame_radius, cfg.electrode_diameter,
+            cfg.spacing, cfg.indenter_radius, cfg.electrode_shape, cfg.element_order, cfg.mesh_size,
+            cfg.mesh_size_indenter, cfg.mesh_size_electrode)
 
 
 def build_mesh(cfg: ArrayConfig) -> Mesh:
-    """Mesh the membrane of ``cfg`` (cached: each geometry is meshed once per process)."""
+    """Mesh the membrane of ``cfg``.
+
+    The geometry is meshed at ``scale = 1`` once per process (cached) and the nodes
+    are then multiplied by ``scale``, so scaled arrays have exactly similar meshes.
+    """
     key = geometry_key(cfg)
     with _GMSH_LOCK:
         if key not in _CACHE:
             if len(_CACHE) >= _CACHE_SIZE:
                 _CACHE.pop(next(iter(_CACHE)))
-            _CACHE[key] = _mesh_with_gmsh(cfg)
-        return _CACHE[key]
+            _CACHE[key] = _mesh_with_gmsh(cfg.replace(scale=1.0))
+        mesh = _CACHE[key]
+    if cfg.scale == 1.0:
+        return mesh
+    return dataclasses.replace(mesh, nodes=mesh.nodes * cfg.scale)
 
 
 def _mesh_with_gmsh(cfg: ArrayConfig) -> Mesh:
@@ -92,6 +99,7 @@ def _mesh_with_gmsh(cfg: ArrayConfig) -> Mesh:
     radius = 0.5 * cfg.scaled("electrode_diameter")
     r_ind = cfg.scaled("indenter_radius")
     h_far, h_ind = cfg.scaled("mesh_size"), cfg.scaled("mesh_size_indenter")
+    h_el = cfg.scaled("mesh_size_electrode")
     gmsh.initialize(interruptible=False)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
@@ -133,17 +141,14 @@ def _mesh_with_gmsh(cfg: ArrayConfig) -> Mesh:
         frame_curves = [abs(t) for _, t in boundary]
         indenter_curves = [abs(t) for k in range(len(centres)) for s in indenter_pieces[k]
                            for _, t in gmsh.model.getBoundary([(2, s)], oriented=False)]
+        electrode_curves = [abs(t) for k in range(len(centres)) for s in electrode_pieces[k]
+                            for _, t in gmsh.model.getBoundary([(2, s)], oriented=False)]
         field = gmsh.model.mesh.field
-        dist = field.add("Distance")
-        field.setNumbers(dist, "CurvesList", indenter_curves)
-        field.setNumber(dist, "Sampling", 200)
-        thr = field.add("Threshold")
-        field.setNumber(thr, "InField", dist)
-        field.setNumber(thr, "SizeMin", h_ind)
-        field.setNumber(thr, "SizeMax", h_far)
-        field.setNumber(thr, "DistMin", 0.0)
-        field.setNumber(thr, "DistMax", 2.0 * radius)
-        field.setAsBackgroundMesh(thr)
+        sizes = [_threshold(field, indenter_curves, h_ind, h_far, 2.0 * radius),
+                 _threshold(field, sorted(set(electrode_curves) - set(indenter_curves)), h_el, h_far, radius)]
+        smallest = field.add("Min")
+        field.setNumbers(smallest, "FieldsList", sizes)
+        field.setAsBackgroundMesh(smallest)
         for name in ("Mesh.MeshSizeExtendFromBoundary", "Mesh.MeshSizeFromPoints", "Mesh.MeshSizeFromCurvature"):
             gmsh.option.setNumber(name, 0)
         gmsh.option.setNumber("Mesh.Algorithm", 6)
@@ -153,6 +158,20 @@ def _mesh_with_gmsh(cfg: ArrayConfig) -> Mesh:
         return _collect(gmsh, cfg, surfaces, frame_curves, indenter_pieces, centre_points)
     finally:
         gmsh.finalize()
+
+
+def _threshold(field, curves: list[int], size_min: float, size_max: float, reach: float) -> int:
+    """A size field growing linearly from ``size_min`` on ``curves`` to ``size_max`` at ``reach``."""
+    dist = field.add("Distance")
+    field.setNumbers(dist, "CurvesList", curves)
+    field.setNumber(dist, "Sampling", 200)
+    thr = field.add("Threshold")
+    field.setNumber(thr, "InField", dist)
+    field.setNumber(thr, "SizeMin", size_min)
+    field.setNumber(thr, "SizeMax", size_max)
+    field.setNumber(thr, "DistMin", 0.0)
+    field.setNumber(thr, "DistMax", reach)
+    return thr
 
 
 def _collect(gmsh, cfg, surfaces, frame_curves, indenter_pieces, centre_points) -> Mesh:
