@@ -13,8 +13,9 @@ reduce it.  The solver
   (``x_f += -K_ff^-1 K_fp dx_p``), so small increments need one or two iterations;
 * may reuse the last factorisation for several iterations (modified Newton) and
   refactors when the residual stops falling fast;
-* converges when the residual is below ``residual_tol * force_scale`` and the last
-  increment below ``increment_tol * length_scale``;
+* converges when the residual is below ``residual_tol * force_scale`` and the
+  next increment, estimated as the last one times the last residual reduction
+  ratio, is below ``increment_tol * length_scale``;
 * checks that the equilibrium is a stable minimum from the inertia of the
   ``LDL^T`` factorisation of ``K_ff`` at the converged state (a Cholesky test).
 """
@@ -167,7 +168,9 @@ class EquilibriumSolver:
                 continue
             ratio = norm_trial / norm if norm > 0 else 0.0
             x, r, point, norm = trial, r_trial, point_trial, norm_trial
-            last_dx = alpha * np.abs(dx).max()
+            # The next increment would be about ratio times this one (the solver
+            # contracts linearly or better): test that against the tolerance.
+            last_dx = alpha * np.abs(dx).max() * (min(ratio, 1.0) if alpha == 1.0 else 1.0)
             stats.history.append(float(norm))
             if not s.modified_newton or ratio > s.contraction:
                 fact = None
@@ -206,10 +209,13 @@ class EquilibriumSolver:
                 cuts += 1
                 stats.step_cuts = cuts
                 if cuts > s.max_step_cuts:
+                    reached_d, reached_v = d0 + done * (d1 - d0), v0 + done * (v1 - v0)
                     raise ConvergenceError(
-                        f"Newton failed to converge: reached {done:.3g} of the load path after "
-                        f"{cuts - 1} step cuts (last step {step:.3g}); target displacement {d1.tolist()} m, "
-                        f"voltage {v1.tolist()} V")
+                        f"Newton failed to converge after {cuts - 1} step cuts: reached {done:.3g} of the load "
+                        f"path (displacement {np.round(reached_d, 9).tolist()} m, voltage "
+                        f"{np.round(reached_v, 3).tolist()} V) on the way to displacement {d1.tolist()} m, "
+                        f"voltage {v1.tolist()} V; beyond it the membrane may have no stable equilibrium "
+                        f"(e.g. electromechanical instability at high voltage)")
                 step *= 0.5
                 fact = self.factorisation if (self.factorisation is not None
                                               and np.array_equal(self.factorisation.free, free)) else None

@@ -106,19 +106,52 @@ def test_warm_updates_reach_the_same_state_as_a_cold_solve(make_twin):
     assert np.allclose(res_warm.capacitance, cold.capacitance, rtol=1e-9)
 
 
-def test_voltage_far_above_the_paper_range_is_reported_not_returned_as_normal(make_twin):
-    """10 kV on a 50 um film (true field > 200 V/um) is flagged: the field exceeds the
-    breakdown limit and the Maxwell stress exceeds the pre-stress (compression /
-    instability), or the solver refuses with ConvergenceError."""
+def test_voltage_far_above_the_paper_range_raises_and_says_how_far_it_got(make_twin):
+    """10 kV on a 50 um film (flat-state field 242 V/um, Maxwell stress above the
+    pre-stress) has no equilibrium: the solver raises, naming the voltage it reached,
+    and the twin keeps its last state."""
     twin = make_twin()
-    try:
-        res = twin.solve([0, 0.005, 0], [0, 10_000.0, 0], FREE_CENTRE)
-    except ConvergenceError as exc:
-        assert "converge" in str(exc)
-        return
-    assert res.field_exceeded
-    assert res.peak_field[1] > 150e6
-    assert not res.ok and any("breakdown" in w for w in res.warnings)
+    before = twin.solve([0, 0.005, 0], [0, 0, 0], FREE_CENTRE)
+    with pytest.raises(ConvergenceError, match=r"failed to converge.*voltage \[0.0, \d+\.\d+, 0.0\] V"):
+        twin.solve([0, 0.005, 0], [0, 10_000.0, 0], FREE_CENTRE)
+    assert twin.last is before
+    assert twin.solve([0, 0.005, 0], [0, 0, 0]).force[1] == pytest.approx(before.force[1], rel=1e-9)
+
+
+def test_compressive_stress_is_flagged_as_wrinkling(make_twin):
+    """At 3800 V the Maxwell stress exceeds the pre-stress near the electrode edge."""
+    res = make_twin().solve([0, 0.005, 0], [0, 3800.0, 0], FREE_CENTRE)
+    assert res.wrinkled and res.min_principal_stress < 0
+    assert not res.ok and any("wrinkle" in w for w in res.warnings)
+
+
+def test_field_above_the_breakdown_limit_is_flagged(make_twin):
+    res = make_twin(breakdown_field=90e6).solve([0, 0.010, 0], [0, 3000.0, 0], FREE_CENTRE)
+    # True field at the stretched electrode: V lambda1 lambda2 / t0 > V lp^2 / t0 = 72.6 V/um.
+    assert res.peak_field[1] > 90e6 and res.field_exceeded
+    assert any("breakdown" in w for w in res.warnings)
+    assert res.peak_field[0] == 0.0
+
+
+def test_stability_check_detects_an_indefinite_tangent():
+    """The inertia of the factorisation against an eigenvalue solver: the pre-stretched
+    flat membrane is a stable minimum; a membrane held at lp = 0.95 (compressed) is not."""
+    import scipy.sparse.linalg as spla
+
+    from dea_array_twin.assembly import element_tangents
+    from dea_array_twin.model import MembraneModel
+    from dea_array_twin.solver import factorise
+
+    model = MembraneModel(ArrayConfig(layout="circular"))
+    prescribed, free = model.prescribed_dofs(("driven",))
+    for stretch, stable in ((1.1, True), (0.95, False)):
+        x = model.flat_state() * stretch / 1.1
+        _, ke = element_tangents(model.disc, x, model.yeoh, model.maxwell(np.zeros(1)), model.thickness)
+        fact = factorise(model, ke, free, prescribed)
+        k_ff = model.pattern.block(model.pattern.values(ke), free, free)
+        smallest = spla.eigsh(k_ff, k=1, sigma=-1.0, which="LM", return_eigenvectors=False)[0]
+        assert fact.negative_pivots >= 0
+        assert (fact.negative_pivots == 0) == stable == (smallest > 0)
 
 
 def test_hv_at_paper_voltage_is_a_normal_result(make_twin):
