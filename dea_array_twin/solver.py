@@ -14,8 +14,9 @@ reduce it.  The solver
 * may reuse the last factorisation for several iterations (modified Newton) and
   refactors when the residual stops falling fast;
 * converges when the residual is below ``residual_tol * force_scale`` and the
-  next increment, estimated as the last one times the last residual reduction
-  ratio, is below ``increment_tol * length_scale``;
+  remaining position error, estimated from the last increment and the residual
+  reduction ratio ``q`` as ``|dx| q / (1 - q)``, is below
+  ``increment_tol * length_scale``;
 * checks that the equilibrium is a stable minimum from the inertia of the
   ``LDL^T`` factorisation of ``K_ff`` at the converged state (a Cholesky test).
 """
@@ -58,12 +59,12 @@ class NewtonSettings:
         Factor the tangent at the converged state and report its inertia.
     """
 
-    residual_tol: float = 1e-7
+    residual_tol: float = 1e-8
     increment_tol: float = 1e-7
     max_iterations: int = 30
     max_step_cuts: int = 12
     modified_newton: bool = True
-    contraction: float = 0.2
+    contraction: float = 0.5
     check_stability: bool = True
 
 
@@ -190,9 +191,10 @@ class EquilibriumSolver:
                 continue
             ratio = norm_trial / norm if norm > 0 else 0.0
             x, r, point, norm = trial, r_trial, point_trial, norm_trial
-            # The next increment would be about ratio times this one (the solver
-            # contracts linearly or better): test that against the tolerance.
-            last_dx = alpha * np.abs(dx).max() * (min(ratio, 1.0) if alpha == 1.0 else 1.0)
+            # With contraction ratio q the remaining error is about |dx| q / (1 - q)
+            # (a geometric series): that is what is tested against the tolerance.
+            step_size = alpha * np.abs(dx).max()
+            last_dx = step_size * ratio / (1.0 - ratio) if (alpha == 1.0 and ratio < 0.9) else step_size
             stats.history.append(float(norm))
             if not s.modified_newton or ratio > s.contraction:
                 fact = None
