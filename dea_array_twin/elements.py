@@ -45,11 +45,6 @@ class TriangleElement:
     shape: np.ndarray
     grad: np.ndarray
 
-    @property
-    def nodes_per_element(self) -> int:
-        """Number of nodes of one element (3 or 6)."""
-        return self.shape.shape[1]
-
 
 def shape_functions(order: int, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Shape functions and their reference gradients at points ``xi`` (shape (n, 2)).

@@ -114,7 +114,6 @@ class SolveStats:
     steps: int = 0
     step_cuts: int = 0
     residual_norm: float = float("nan")
-    history: list = field(default_factory=list)
 
 
 def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
@@ -195,7 +194,6 @@ class EquilibriumSolver:
             # (a geometric series): that is what is tested against the tolerance.
             step_size = alpha * np.abs(dx).max()
             last_dx = step_size * ratio / (1.0 - ratio) if (alpha == 1.0 and ratio < 0.9) else step_size
-            stats.history.append(float(norm))
             if not s.modified_newton or ratio > s.contraction:
                 fact = None
             fresh = False
