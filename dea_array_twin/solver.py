@@ -114,6 +114,7 @@ class SolveStats:
     steps: int = 0
     step_cuts: int = 0
     residual_norm: float = float("nan")
+    stability_checked: bool = False
 
 
 def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
@@ -201,15 +202,18 @@ class EquilibriumSolver:
 
     # ------------------------------------------------------------------ load path
     def solve(self, x: np.ndarray, modes: tuple[str, ...], start_displacement: np.ndarray,
-              displacement: np.ndarray, start_voltage: np.ndarray, voltage: np.ndarray) -> tuple:
+              displacement: np.ndarray, start_voltage: np.ndarray, voltage: np.ndarray,
+              check_stability: bool | None = None) -> tuple:
         """Equilibrium at (``displacement``, ``voltage``) starting from state ``x``.
 
         ``x`` is a converged state at (``start_displacement``, ``start_voltage``)
         for driven units; it is not modified.  Returns the new positions, the
         internal forces there, the :class:`~.assembly.PointState` there and
-        :class:`SolveStats`.  Raises :class:`ConvergenceError`.
+        :class:`SolveStats`.  ``check_stability`` overrides the setting for this
+        solve.  Raises :class:`ConvergenceError`.
         """
         m, s = self.model, self.settings
+        check = s.check_stability if check_stability is None else check_stability
         prescribed, free = m.prescribed_dofs(modes)
         groups = [np.flatnonzero(np.isin(prescribed, 3 * m.mesh.indenter_nodes[k] + 2))
                   for k, mode in enumerate(modes) if mode == DRIVEN]
@@ -247,11 +251,12 @@ class EquilibriumSolver:
             done = t
             stats.steps += 1
             step = min(2.0 * step, 1.0)
-            if done < 1.0 or s.check_stability or fact_used is None:
+            if done < 1.0 or check or fact_used is None:
                 _, ke = element_tangents(m.disc, x, m.yeoh, m.maxwell(v0 + t * (v1 - v0)), m.thickness)
                 fact = factorise(m, ke, free, prescribed)
                 stats.factorisations += 1
             else:
                 fact = fact_used
             self.factorisation = fact
+        stats.stability_checked = check
         return x, r, point, stats

@@ -1,0 +1,319 @@
+"""The twin as a ROS 2 node: per-unit commands in, force and capacitance out.
+
+Interface (relative names, so ``-r __ns:=/left_array`` runs several arrays; SI units):
+
+* ``command/displacement``, ``command/voltage`` (std_msgs/Float64MultiArray, one value
+  per unit, m and V), subscribed best-effort with depth 1: reliable and best-effort
+  publishers both connect, and only the latest command is kept (sample and hold).
+* ``force``, ``capacitance`` (std_msgs/Float64MultiArray, dim "unit"), ``unit_states``
+  (sensor_msgs/JointState: position = centre deflection, effort = force), published
+  reliable/volatile after each update; ``membrane`` (visualization_msgs/Marker
+  TRIANGLE_LIST) at ``marker_rate``; ``/diagnostics`` at 1 Hz.
+* service ``reset`` (std_srvs/Trigger): all units to 0 m, 0 V, flat membrane.
+
+The node only translates messages: validation rules live in :func:`command_error`,
+physics in :class:`~.twin.ArrayTwin`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Sequence
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import JointState
+from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker
+
+from .config import ArrayConfig, ConfigError
+from .configfile import load_config
+from .model import DRIVEN, MODES
+from .ros_params import RUNTIME_FIELDS, config_descriptor, config_fields
+from .solver import ConvergenceError
+from .twin import ArrayTwin, TwinResult
+
+COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def command_error(kind: str, values: Sequence[float], cfg: ArrayConfig) -> str | None:
+    """Why a command is invalid, or None.  ``kind`` is "displacement" or "voltage"."""
+    n = cfg.n_units
+    if len(values) != n:
+        return f"{kind} command has {len(values)} values, expected {n} (one per unit)"
+    arr = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        return f"{kind} command contains NaN or inf: {arr.tolist()}"
+    if kind == "displacement":
+        limit = cfg.scaled("max_displacement")
+        if np.any(np.abs(arr) > limit):
+            return f"displacement {arr.tolist()} m beyond max_displacement {limit} m"
+        return None
+    if np.any(arr < 0):
+        return f"negative voltage {arr.tolist()} V (the electrodes are driven by one polarity)"
+    v_max = cfg.breakdown_field * cfg.thickness / cfg.prestretch**2
+    if np.any(arr > v_max):
+        return (f"voltage {arr.tolist()} V above {v_max:.0f} V, where the flat pre-stretched field "
+                f"reaches breakdown_field {cfg.breakdown_field:.4g} V/m")
+    return None
+
+
+def _array(values: np.ndarray) -> Float64MultiArray:
+    msg = Float64MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label="unit", size=len(values), stride=len(values))]
+    msg.data = [float(v) for v in values]
+    return msg
+
+
+class TwinNode(Node):
+    """ROS 2 node wrapping an :class:`ArrayTwin`."""
+
+    def __init__(self, **kwargs):
+        super().__init__("dea_array_twin", **kwargs)
+        cfg = self._declare_config()
+        self.twin = ArrayTwin(cfg)
+        n = cfg.n_units
+        self.update_rate = self.declare_parameter(
+            "update_rate", 100.0, ParameterDescriptor(description="updates per second [Hz]; 0 = one per command",
+                                                      read_only=True)).value
+        self.marker_rate = self.declare_parameter(
+            "marker_rate", 5.0, ParameterDescriptor(description="membrane marker rate [Hz]; 0 = off",
+                                                    read_only=True)).value
+        self.frame_id = self.declare_parameter(
+            "frame_id", "dea_array", ParameterDescriptor(description="frame of unit_states and membrane",
+                                                         read_only=True)).value
+        self.stability_period = self.declare_parameter(
+            "stability_check_period", 1.0,
+            ParameterDescriptor(description="seconds between stability checks of the equilibrium (a tangent "
+                                            "factorisation, ~20 ms); 0 = every update")).value
+        modes = self.declare_parameter(
+            "unit_modes", [DRIVEN] * n,
+            ParameterDescriptor(description="per unit 'driven' (indenter follows command/displacement) or "
+                                            "'free' (no indenter)")).value
+        self._check_modes(list(modes))
+        self.modes = tuple(modes)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        if self.update_rate < 0 or not math.isfinite(self.update_rate):
+            raise ConfigError(f"update_rate: must be >= 0 Hz, got {self.update_rate}")
+
+        self.displacement = np.zeros(n)
+        self.voltage = np.zeros(n)
+        self._dirty = True
+        self.counters = {"rejected_displacement": 0, "rejected_voltage": 0, "failed_solves": 0,
+                         "updates": 0, "skipped_ticks": 0}
+        self._last_warn: dict[str, float] = {}
+        self.last_error = ""
+        self.result: TwinResult | None = None
+        self._last_stability_time = -math.inf
+        self._last_tick = None
+        self._update_times: list[float] = []
+
+        self.pub_force = self.create_publisher(Float64MultiArray, "force", OUTPUT_QOS)
+        self.pub_cap = self.create_publisher(Float64MultiArray, "capacitance", OUTPUT_QOS)
+        self.pub_states = self.create_publisher(JointState, "unit_states", OUTPUT_QOS)
+        self.pub_marker = self.create_publisher(Marker, "membrane", OUTPUT_QOS)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", OUTPUT_QOS)
+        self.create_subscription(Float64MultiArray, "command/displacement",
+                                 lambda m: self._on_command("displacement", m), COMMAND_QOS)
+        self.create_subscription(Float64MultiArray, "command/voltage",
+                                 lambda m: self._on_command("voltage", m), COMMAND_QOS)
+        self.create_service(Trigger, "reset", self._on_reset)
+        if self.update_rate > 0:
+            self.create_timer(1.0 / self.update_rate, self._on_tick)
+        if self.marker_rate > 0:
+            self.create_timer(1.0 / self.marker_rate, self._publish_marker)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self._update()
+        self.get_logger().info(
+            f"twin of {cfg.rows if cfg.layout == 'array' else 1}x{cfg.cols if cfg.layout == 'array' else 1} "
+            f"{cfg.layout} ready: {self.twin.model.mesh.n_elements} elements, {self.twin.model.disc.n_dofs} dofs, "
+            f"update_rate {self.update_rate} Hz")
+
+    # ---------------------------------------------------------------- parameters
+    def _declare_config(self) -> ArrayConfig:
+        path = self.declare_parameter(
+            "config_file", "", ParameterDescriptor(description="twin config YAML; parameters below override it",
+                                                   read_only=True)).value
+        base = load_config(path or None)
+        values = {}
+        for name, default in config_fields(base).items():
+            values[name] = self.declare_parameter(name, default, config_descriptor(name, default)).value
+        return ArrayConfig.from_dict(values)
+
+    def _check_modes(self, modes: list) -> None:
+        n = self.twin.n_units
+        if len(modes) != n or any(m not in MODES for m in modes):
+            raise ConfigError(f"unit_modes: must be {n} values out of {MODES}, got {modes}")
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        changes = {}
+        modes = None
+        for p in params:
+            if p.name == "unit_modes":
+                try:
+                    self._check_modes(list(p.value))
+                except ConfigError as exc:
+                    return SetParametersResult(successful=False, reason=str(exc))
+                modes = tuple(p.value)
+            elif p.name in RUNTIME_FIELDS:
+                changes[p.name] = p.value
+        if changes:
+            try:
+                cfg = self.twin.config.replace(**changes)
+            except (ConfigError, TypeError) as exc:
+                return SetParametersResult(successful=False, reason=str(exc))
+            self.twin.config = cfg
+        if modes is not None:
+            self.modes = modes
+            self._dirty = True
+        return SetParametersResult(successful=True)
+
+    # ---------------------------------------------------------------- callbacks
+    def _warn(self, key: str, text: str, period: float = 1.0) -> None:
+        now = time.monotonic()
+        if now - self._last_warn.get(key, -math.inf) >= period:
+            self._last_warn[key] = now
+            self.get_logger().warning(text)
+
+    def _on_command(self, kind: str, msg: Float64MultiArray) -> None:
+        error = command_error(kind, msg.data, self.twin.config)
+        if error:
+            self.counters[f"rejected_{kind}"] += 1
+            self._warn(kind, f"rejected {kind} command: {error}")
+            return
+        setattr(self, kind, np.array(msg.data, dtype=float))
+        self._dirty = True
+        if self.update_rate == 0:
+            self._update()
+
+    def _on_reset(self, request, response):
+        self.twin.reset()
+        self.displacement[:] = 0.0
+        self.voltage[:] = 0.0
+        self._dirty = True
+        self._update()
+        response.success = self.last_error == ""
+        response.message = "twin reset to 0 m, 0 V" if response.success else self.last_error
+        return response
+
+    def _on_tick(self) -> None:
+        now = time.monotonic()
+        if self._last_tick is not None:
+            missed = int((now - self._last_tick) * self.update_rate + 0.5) - 1
+            if missed > 0:
+                self.counters["skipped_ticks"] += missed
+        self._last_tick = now
+        self._update()
+
+    # ---------------------------------------------------------------- the update
+    def _update(self) -> None:
+        if self._dirty:
+            now = time.monotonic()
+            check = now - self._last_stability_time >= self.stability_period
+            try:
+                self.result = self.twin.solve(self.displacement, self.voltage, self.modes, check_stability=check)
+                self.last_error = ""
+                if check:
+                    self._last_stability_time = now
+            except (ConvergenceError, ValueError) as exc:
+                self.counters["failed_solves"] += 1
+                self.last_error = str(exc)
+                self._warn("solve", f"solve failed, keeping the last state: {exc}")
+            self._dirty = False
+            self._update_times.append(now)
+            self.counters["updates"] += 1
+        self._publish_outputs()
+
+    def _publish_outputs(self) -> None:
+        res = self.result
+        if res is None:
+            return
+        stamp = self.get_clock().now().to_msg()
+        self.pub_force.publish(_array(res.force))
+        self.pub_cap.publish(_array(res.capacitance))
+        states = JointState()
+        states.header.stamp = stamp
+        states.header.frame_id = self.frame_id
+        states.name = [f"unit_{k + 1}" for k in range(self.twin.n_units)]
+        states.position = [float(v) for v in res.centre_deflection]
+        states.effort = [float(v) for v in res.force]
+        self.pub_states.publish(states)
+
+    def _publish_marker(self) -> None:
+        res = self.result
+        if res is None:
+            return
+        mesh = self.twin.model.mesh
+        corners = mesh.elements[:, :3]
+        pts = res.positions[corners].reshape(-1, 3)
+        ref = mesh.nodes[corners]
+        e1, e2 = ref[:, 1] - ref[:, 0], ref[:, 2] - ref[:, 0]
+        area0 = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        tri = res.positions[corners]
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        lp2 = self.twin.config.prestretch ** 2
+        level = np.clip((area / area0 / lp2 - 1.0) / 1.0, 0.0, 1.0)  # 0 at pre-stretch, 1 at twice the area
+        marker = Marker()
+        marker.header.stamp = self.get_clock().now().to_msg()
+        marker.header.frame_id = self.frame_id
+        marker.ns, marker.id, marker.type, marker.action = "membrane", 0, Marker.TRIANGLE_LIST, Marker.ADD
+        marker.pose.orientation.w = 1.0
+        marker.scale.x = marker.scale.y = marker.scale.z = 1.0
+        marker.points = [Point(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in pts]
+        marker.colors = [ColorRGBA(r=float(v), g=0.3, b=float(1.0 - v), a=1.0) for v in np.repeat(level, 3)]
+        self.pub_marker.publish(marker)
+
+    def _publish_diagnostics(self) -> None:
+        res = self.result
+        status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: solver", hardware_id="dea_array_twin")
+        if self.last_error:
+            status.level, status.message = DiagnosticStatus.ERROR, f"last solve failed: {self.last_error}"
+        elif res is not None and not res.ok:
+            status.level, status.message = DiagnosticStatus.WARN, "; ".join(res.warnings)
+        else:
+            status.level, status.message = DiagnosticStatus.OK, "ok"
+        now = time.monotonic()
+        recent = [t for t in self._update_times if now - t <= 1.0]
+        self._update_times = recent
+        values = dict(self.counters)
+        values["achieved_update_rate_hz"] = len(recent)
+        if res is not None:
+            values.update(iterations=res.iterations, residual_N=res.residual, solve_time_ms=1e3 * res.solve_time,
+                          stable=res.stable, wrinkled=res.wrinkled, field_exceeded=res.field_exceeded,
+                          min_principal_stress_Pa=res.min_principal_stress,
+                          peak_field_V_per_m=float(res.peak_field.max()))
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(msg)
+
+
+def main(args: Sequence[str] | None = None) -> None:
+    """Entry point of ``twin_node`` (``ros2 run dea_array_twin twin_node``)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = TwinNode()
+        rclpy.spin(node)
+    except ConfigError as exc:
+        rclpy.logging.get_logger("dea_array_twin").fatal(f"invalid parameter: {exc}")
+        raise SystemExit(2) from None
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,49 @@
+"""ROS 2 parameters of the twin node: every :class:`ArrayConfig` field plus run-time ones.
+
+Geometry, material and mesh fields are read-only after start (changing them means a
+new mesh and a new model: restart the node).  Unit modes and the command limits can
+change at run time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
+
+from .config import ArrayConfig
+
+#: Config fields that may change while the node runs (limits, checked per command).
+RUNTIME_FIELDS = ("max_displacement", "breakdown_field")
+
+_UNITS = {
+    "length": "m", "width": "m", "frame_radius": "m", "electrode_diameter": "m", "spacing": "m",
+    "indenter_radius": "m", "thickness": "m", "mesh_size": "m", "mesh_size_indenter": "m",
+    "mesh_size_electrode": "m", "max_displacement": "m", "c10": "Pa", "c20": "Pa", "c30": "Pa",
+    "breakdown_field": "V/m", "scale": "-", "epsr": "-", "prestretch": "-",
+}
+_RANGES = {"rows": (1, 64), "cols": (1, 64), "element_order": (1, 2)}
+
+
+def config_descriptor(name: str, value: object) -> ParameterDescriptor:
+    """Descriptor (description with unit, read-only flag, integer range) of a config field."""
+    unit = _UNITS.get(name, "")
+    doc = f"ArrayConfig.{name}" + (f" [{unit}]" if unit else "")
+    desc = ParameterDescriptor(name=name, description=doc, read_only=name not in RUNTIME_FIELDS)
+    if name in _RANGES:
+        lo, hi = _RANGES[name]
+        desc.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
+    if isinstance(value, bool):
+        desc.type = ParameterType.PARAMETER_BOOL
+    elif isinstance(value, int):
+        desc.type = ParameterType.PARAMETER_INTEGER
+    elif isinstance(value, float):
+        desc.type = ParameterType.PARAMETER_DOUBLE
+    else:
+        desc.type = ParameterType.PARAMETER_STRING
+    return desc
+
+
+def config_fields(cfg: ArrayConfig) -> dict[str, object]:
+    """The config as ``{field: value}`` in declaration order."""
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
