@@ -20,7 +20,11 @@ except ImportError:
 # So wheels (pip install .) also carry, as data, a launcher in lib/PKG/ that
 # runs <prefix>/bin/EXE. colcon builds no wheel, so it never gets the launcher
 # and its real script in lib/PKG/ is not overwritten.
-console_scripts = {'dea-twin': 'dea_array_twin.cli:main'}
+console_scripts = {
+    'dea-twin': 'dea_array_twin.cli:main',
+    'twin_node': 'dea_array_twin.node:main',
+    'wave_controller': 'dea_array_twin.wave_controller:main',
+}
 
 LAUNCHER = """#!/bin/sh
 # Installed by pip so that `ros2 run {pkg} {exe}` finds the console script

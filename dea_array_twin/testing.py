@@ -58,10 +58,14 @@ class TwinHarness:
         Run the twin in a subprocess instead of this process.
     namespace : str
         Namespace of the twin (its topics are relative).
+    params_file : str, optional
+        A ROS parameters YAML for the twin (``process=True`` only).
     """
 
-    def __init__(self, parameters: dict[str, Any] | None = None, process: bool = False, namespace: str = ""):
+    def __init__(self, parameters: dict[str, Any] | None = None, process: bool = False, namespace: str = "",
+                 params_file: str | None = None):
         self.parameters = dict(parameters or {})
+        self.params_file = params_file
         self.process_mode = process
         self.namespace = namespace.rstrip("/")
         self._stack = contextlib.ExitStack()
@@ -84,6 +88,8 @@ class TwinHarness:
             self.node = Node("twin_test_client", context=self.context)
             if self.process_mode:
                 self._start_process()
+            elif self.params_file:
+                raise ValueError("params_file needs process=True")
             else:
                 overrides = [Parameter(k, value=v) for k, v in self.parameters.items()]
                 self.twin_node = TwinNode(context=self.context, parameter_overrides=overrides,
@@ -127,6 +133,8 @@ class TwinHarness:
     def _start_process(self) -> None:
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         args = [sys.executable, "-m", "dea_array_twin.node", "--ros-args"]
+        if self.params_file:
+            args += ["--params-file", self.params_file]
         for key, value in self.parameters.items():
             args += ["-p", f"{key}:={_param_text(value)}"]
         if self.namespace:

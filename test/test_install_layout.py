@@ -73,3 +73,37 @@ def test_ros2_run_launcher_runs_installed_console_script(tmp_path):
     result = subprocess.run([str(launcher), '--help'], cwd=tmp_path, capture_output=True,
                             text=True, timeout=120)
     assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.parametrize('executable', ['twin_node', 'wave_controller'])
+def test_ros2_run_finds_the_node_executables(executable):
+    # `ros2 run dea_array_twin twin_node` looks only in <prefix>/lib/dea_array_twin/.
+    for path in (PREFIX / 'lib' / PACKAGE / executable, Path(sys.executable).parent / executable):
+        assert path.is_file() and os.access(path, os.X_OK), f'missing executable {path}'
+
+
+def test_installed_twin_node_starts_and_stops_on_sigint(tmp_path):
+    """The lib/ launcher runs the real node: it logs that it is ready, and SIGINT ends it with 0."""
+    import signal
+    import time
+
+    from domain_coordinator import domain_id
+
+    with domain_id() as domain:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+                   PYTHONUNBUFFERED='1')
+        proc = subprocess.Popen([str(PREFIX / 'lib' / PACKAGE / 'twin_node'), '--ros-args', '-p',
+                                 'update_rate:=20.0'], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                                stderr=subprocess.STDOUT, text=True)
+        try:
+            deadline = time.monotonic() + 60
+            line = ''
+            while 'ready' not in line and time.monotonic() < deadline:
+                line = proc.stdout.readline()
+                assert line or proc.poll() is None, 'twin_node exited before it was ready'
+            assert 'ready' in line
+            proc.send_signal(signal.SIGINT)
+            assert proc.wait(timeout=20) == 0
+        finally:
+            if proc.poll() is None:
+                proc.kill()
