@@ -60,6 +60,12 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("--modes", type=lambda t: t.replace(",", " ").split(),
                        help="per-unit mode, 'driven' or 'free', comma separated (default: all driven)")
     solve.add_argument("--json", action="store_true", help="print one JSON object (SI units)")
+    run = sub.add_parser("run", help="start the twin ROS 2 node (like ros2 run dea_array_twin twin_node)")
+    run.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
+    run.add_argument("ros_args", nargs=argparse.REMAINDER, help="--ros-args ... passed to the node")
+    demo = sub.add_parser("demo", help="the twin node plus the example wave controller, printing what they do")
+    demo.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
+    demo.add_argument("--duration", type=float, default=20.0, help="seconds to run (default 20; 0 = until Ctrl-C)")
     return parser
 
 
@@ -124,10 +130,32 @@ def _solve_dict(res: TwinResult) -> dict:
     return out
 
 
+def _node_args(config: str | None, extra: Sequence[str]) -> list[str]:
+    """rclpy arguments: the config file as the ``config_file`` parameter, then ``extra``."""
+    from pathlib import Path
+
+    out = ["dea-twin"]
+    extra = list(extra)
+    if config:
+        out += ["--ros-args", "-p", f"config_file:={Path(config).resolve()}"]
+        if extra[:1] == ["--ros-args"]:
+            extra = extra[1:]
+    return out + extra
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``dea-twin``; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == "run":
+        from .node import main as node_main
+
+        node_main(_node_args(args.config, args.ros_args))
+        return 0
+    if args.command == "demo":
+        from .demo import run_demo
+
+        return run_demo(_node_args(args.config, []), args.duration)
     try:
         twin = ArrayTwin(load_config(args.config))
         if args.command == "curve":

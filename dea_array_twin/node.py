@@ -82,19 +82,14 @@ class TwinNode(Node):
         cfg = self._declare_config()
         self.twin = ArrayTwin(cfg)
         n = cfg.n_units
-        self.update_rate = self.declare_parameter(
-            "update_rate", 100.0, ParameterDescriptor(description="updates per second [Hz]; 0 = one per command",
-                                                      read_only=True)).value
-        self.marker_rate = self.declare_parameter(
-            "marker_rate", 5.0, ParameterDescriptor(description="membrane marker rate [Hz]; 0 = off",
-                                                    read_only=True)).value
+        self.update_rate = self._number("update_rate", 100.0, "updates per second [Hz]; 0 = one per command")
+        self.marker_rate = self._number("marker_rate", 5.0, "membrane marker rate [Hz]; 0 = off")
         self.frame_id = self.declare_parameter(
             "frame_id", "dea_array", ParameterDescriptor(description="frame of unit_states and membrane",
                                                          read_only=True)).value
-        self.stability_period = self.declare_parameter(
+        self.stability_period = self._number(
             "stability_check_period", 1.0,
-            ParameterDescriptor(description="seconds between stability checks of the equilibrium (a tangent "
-                                            "factorisation, ~20 ms); 0 = every update")).value
+            "seconds between stability checks of the equilibrium (a tangent factorisation, ~20 ms); 0 = every update")
         modes = self.declare_parameter(
             "unit_modes", [DRIVEN] * n,
             ParameterDescriptor(description="per unit 'driven' (indenter follows command/displacement) or "
@@ -102,8 +97,10 @@ class TwinNode(Node):
         self._check_modes(list(modes))
         self.modes = tuple(modes)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        if self.update_rate < 0 or not math.isfinite(self.update_rate):
-            raise ConfigError(f"update_rate: must be >= 0 Hz, got {self.update_rate}")
+        for name in ("update_rate", "marker_rate", "stability_check_period"):
+            value = self.get_parameter(name).value
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value < math.inf):
+                raise ConfigError(f"{name}: must be a number >= 0, got {value!r}")
 
         self.displacement = np.zeros(n)
         self.voltage = np.zeros(n)
@@ -139,6 +136,15 @@ class TwinNode(Node):
             f"update_rate {self.update_rate} Hz")
 
     # ---------------------------------------------------------------- parameters
+    def _number(self, name: str, default: float, text: str) -> float:
+        """Declare a read-only numeric parameter that accepts integers too."""
+        value = self.declare_parameter(name, default, ParameterDescriptor(
+            description=text, read_only=True, dynamic_typing=True)).value
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name}: must be a number, got {value!r}") from None
+
     def _declare_config(self) -> ArrayConfig:
         path = self.declare_parameter(
             "config_file", "", ParameterDescriptor(description="twin config YAML; parameters below override it",

@@ -38,7 +38,8 @@ def config_descriptor(name: str, value: object) -> ParameterDescriptor:
     elif isinstance(value, int):
         desc.type = ParameterType.PARAMETER_INTEGER
     elif isinstance(value, float):
-        desc.type = ParameterType.PARAMETER_DOUBLE
+        # Accept integers too ("-p prestretch:=2"): ArrayConfig.from_dict converts.
+        desc.dynamic_typing = True
     else:
         desc.type = ParameterType.PARAMETER_STRING
     return desc

@@ -73,6 +73,8 @@ class TwinHarness:
         self._messages: dict[str, list] = {}
         self.twin_node: TwinNode | None = None
         self.process: subprocess.Popen | None = None
+        #: Exception raised by a callback on the executor thread (which then stops).
+        self.spin_error: Exception | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> "TwinHarness":
@@ -80,7 +82,9 @@ class TwinHarness:
 
         try:
             self.domain_id = self._stack.enter_context(domain_id())
+            previous = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE")
             os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+            self._stack.callback(_restore_env, "ROS_AUTOMATIC_DISCOVERY_RANGE", previous)
             self.context = Context()
             rclpy.init(context=self.context, domain_id=self.domain_id)
             self._stack.callback(self.context.try_shutdown)
@@ -118,10 +122,10 @@ class TwinHarness:
         while self.context.ok():
             try:
                 self.executor.spin_once(timeout_sec=0.05)
-            except Exception:  # shutdown races end the thread
-                if not self.context.ok():
-                    return
-                raise
+            except Exception as exc:  # a callback raised: wait_for reports it
+                if self.context.ok():
+                    self.spin_error = exc
+                return
 
     def _stop_spin(self) -> None:
         self.executor.shutdown()
@@ -129,6 +133,7 @@ class TwinHarness:
         self._thread.join(timeout=5.0)
         if self.twin_node is not None:
             self.twin_node.destroy_node()
+        self.node.destroy_node()
 
     def _start_process(self) -> None:
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
@@ -190,6 +195,9 @@ class TwinHarness:
             for msg in self.messages(name)[after:]:
                 if predicate is None or predicate(msg):
                     return msg
+            if self.spin_error is not None:
+                raise RuntimeError(f"a callback on the harness executor raised: {self.spin_error!r}") \
+                    from self.spin_error
             if self.process is not None and self.process.poll() is not None:
                 raise RuntimeError(f"twin process exited with {self.process.returncode}: "
                                    f"{self.process.stdout.read()[-2000:]}")
@@ -209,6 +217,13 @@ class TwinHarness:
                 raise TimeoutError("reset service did not answer")
             time.sleep(0.01)
         return future.result()
+
+
+def _restore_env(name: str, value: str | None) -> None:
+    if value is None:
+        os.environ.pop(name, None)
+    else:
+        os.environ[name] = value
 
 
 def _param_text(value: Any) -> str:

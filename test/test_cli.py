@@ -72,3 +72,21 @@ def test_module_entry_point_runs_in_a_subprocess():
                            "--json"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["force"][1] > 0
+
+
+def test_demo_runs_the_twin_with_the_wave_controller():
+    """The README's first command: within seconds the wave deflects the units in turn."""
+    import os
+
+    from domain_coordinator import domain_id
+
+    with domain_id() as domain:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        proc = subprocess.run([sys.executable, "-m", "dea_array_twin.cli", "demo", "--duration", "7"], env=env,
+                              capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    rows = [line for line in proc.stdout.splitlines()[1:] if "|" in line]
+    deflections = np.array([[float(cell.split()[0]) for cell in row.split("|")[1:]] for row in rows])
+    assert len(rows) >= 10
+    assert deflections[:, 0].max() > 7.0 and deflections[:, 1].max() > 7.0  # mm: unit 1, then unit 2
+    assert "unit 2 triggered by capacitance" in proc.stderr

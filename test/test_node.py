@@ -97,7 +97,7 @@ def test_a_failed_solve_keeps_the_last_state_reports_error_and_recovers():
 
 def test_params_file_is_honoured(tmp_path):
     params = tmp_path / "twin.yaml"
-    params.write_text("/**:\n  ros__parameters:\n    update_rate: 25.0\n    prestretch: 1.2\n"
+    params.write_text("/**:\n  ros__parameters:\n    update_rate: 25\n    prestretch: 1.2\n"
                       "    unit_modes: [free, driven, free]\n")
     with TwinHarness(process=True, parameters={}, params_file=str(params)) as h:
         cap = h.wait_for("capacitance", timeout=20)
@@ -156,3 +156,12 @@ def test_command_flood_leaves_no_backlog():
         n = len(h.messages("/diagnostics"))
         _, values = _diag(h, key_values_after=n)
         assert int(values["updates"]) < 50 * 4  # sampled at the update rate, not per command
+
+
+def test_shipped_params_file_starts_the_twin():
+    from pathlib import Path
+
+    params = Path(__file__).resolve().parents[1] / "config" / "twin.yaml"
+    with TwinHarness(process=True, params_file=str(params)) as h:
+        h.send_displacement([0.0, 0.003, 0.0])
+        assert h.wait_for("force", lambda m: m.data[1] > 0.01, timeout=20).data[1] > 0
