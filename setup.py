@@ -68,7 +68,7 @@ setup(
     install_requires=['numpy', 'scipy', 'gmsh', 'pyyaml', 'tqdm'],
     extras_require={
         'test': ['pytest'],
-        'mcap': ['mcap', 'mcap-ros2-support'],
+        'mcap': ['mcap>=1.5', 'mcap-ros2-support', 'rosbags'],
     },
     zip_safe=True,
     maintainer='dea_array_twin developers',

@@ -109,7 +109,7 @@ class TwinHarness:
             self._thread = threading.Thread(target=self._spin, daemon=True)
             self._thread.start()
             self._stack.callback(self._stop_spin)
-            self.wait_for("force", timeout=60.0)
+            self._wait_until_connected(timeout=60.0)
         except BaseException:
             self._stack.close()
             raise
@@ -117,6 +117,23 @@ class TwinHarness:
 
     def __exit__(self, *exc) -> None:
         self._stack.close()
+
+    def _wait_until_connected(self, timeout: float) -> None:
+        """Block until the twin's command subscriptions and outputs are discovered."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            # Matched on our (writer) side; the twin's best-effort reader matches at about
+            # the same time: give it a moment, since a best-effort sample sent before
+            # that is dropped.
+            if (all(pub.get_subscription_count() >= 1 for pub in self._pubs.values())
+                    and self.node.count_publishers(self.topic("force")) >= 1):
+                time.sleep(0.2)
+                return
+            if self.process is not None and self.process.poll() is not None:
+                raise RuntimeError(f"twin process exited with {self.process.returncode}: "
+                                   f"{self.process.stdout.read()[-2000:]}")
+            time.sleep(0.02)
+        raise TimeoutError(f"twin not discovered on ROS domain {self.domain_id} within {timeout} s")
 
     def _spin(self) -> None:
         while self.context.ok():

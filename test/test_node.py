@@ -165,3 +165,24 @@ def test_shipped_params_file_starts_the_twin():
     with TwinHarness(process=True, params_file=str(params)) as h:
         h.send_displacement([0.0, 0.003, 0.0])
         assert h.wait_for("force", lambda m: m.data[1] > 0.01, timeout=20).data[1] > 0
+
+
+def test_update_rate_zero_updates_once_per_command():
+    with TwinHarness(parameters={"update_rate": 0.0, "marker_rate": 0.0}) as h:
+        n = len(h.messages("force"))
+        for d in (0.001, 0.002, 0.003):
+            h.send_displacement([0.0, d, 0.0])
+            h.wait_for("unit_states", lambda m, d=d: m.position[1] == d, timeout=10)
+        time.sleep(0.5)
+        assert len(h.messages("force")) - n == 3  # one output per command, none in between
+
+
+def test_namespaced_twin_publishes_the_deformed_membrane_marker():
+    with TwinHarness(parameters={"update_rate": 20.0, "marker_rate": 10.0}, namespace="/left_array") as h:
+        assert h.topic("force") == "/left_array/force"
+        h.send_displacement([0.0, 0.008, 0.0])
+        marker = h.wait_for("membrane", lambda m: max(p.z for p in m.points) > 0.0079, timeout=20)
+        n_elements = h.twin_node.twin.model.mesh.n_elements
+        assert len(marker.points) == 3 * n_elements == len(marker.colors)
+        assert max(p.z for p in marker.points) == pytest.approx(0.008)
+        assert marker.type == marker.TRIANGLE_LIST and marker.header.frame_id == "dea_array"
