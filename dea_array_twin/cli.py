@@ -1,4 +1,4 @@
-"""Command line: ``dea-twin curve`` and ``dea-twin solve``.
+"""Command line: ``dea-twin curve``, ``solve``, ``run``, ``demo``, ``replay`` and ``plot``.
 
 Thin layer over :class:`~.twin.ArrayTwin`: parses arguments, runs the solves, prints
 a labelled table (mm, N, pF) or JSON in SI units.  Exit codes: 0 ok, 1 the solver
@@ -66,6 +66,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the twin node plus the example wave controller, printing what they do")
     demo.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
     demo.add_argument("--duration", type=float, default=20.0, help="seconds to run (default 20; 0 = until Ctrl-C)")
+    from . import plot, replay
+
+    replay.add_arguments(sub.add_parser(
+        "replay", help="re-run the twin on a recorded bag's commands (MCAP + CSV out, FIT against recorded "
+                       "outputs), or republish them with --realtime"))
+    plot.add_arguments(sub.add_parser("plot", help="plot commands, forces and capacitances of a bag to a PNG"))
     return parser
 
 
@@ -156,6 +162,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .demo import run_demo
 
         return run_demo(_node_args(args.config, []), args.duration)
+    if args.command in ("replay", "plot"):
+        from . import plot, replay
+
+        return (replay if args.command == "replay" else plot).run_from_args(args)
     try:
         twin = ArrayTwin(load_config(args.config))
         if args.command == "curve":

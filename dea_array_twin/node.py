@@ -129,6 +129,9 @@ class TwinNode(Node):
         if self.marker_rate > 0:
             self.create_timer(1.0 / self.marker_rate, self._publish_marker)
         self.create_timer(1.0, self._publish_diagnostics)
+        self.recorder = None
+        self.recording_error = ""
+        self._start_recording()
         self._update()
         self.get_logger().info(
             f"twin of {cfg.rows if cfg.layout == 'array' else 1}x{cfg.cols if cfg.layout == 'array' else 1} "
@@ -182,6 +185,40 @@ class TwinNode(Node):
             self.modes = modes
             self._dirty = True
         return SetParametersResult(successful=True)
+
+    def _start_recording(self) -> None:
+        record = self.declare_parameter("record", False, ParameterDescriptor(
+            description="record commands, outputs and diagnostics to MCAP", read_only=True)).value
+        directory = self.declare_parameter("record_dir", "recordings", ParameterDescriptor(
+            description="folder of the MCAP recordings", read_only=True)).value
+        split_size = self._number("record_split_size", 0.0, "start a new file after this many bytes; 0 = never")
+        split_duration = self._number("record_split_duration", 0.0,
+                                      "start a new file after this many seconds; 0 = never")
+        if not record:
+            return
+        from .mcap_writer import RecordingError
+        from .recorder import TopicRecorder
+
+        metadata = {k: str(v) for k, v in self.twin.config.to_dict().items()}
+        metadata.update(unit_modes="[" + ", ".join(self.modes) + "]", update_rate=str(self.update_rate))
+        try:
+            self.recorder = TopicRecorder(self, directory, metadata, self._on_recording_error,
+                                          split_size=split_size, split_duration=split_duration)
+            self.get_logger().info(f"recording to {self.recorder.path}")
+        except RecordingError as exc:
+            self._on_recording_error(f"recording not started: {exc}")
+
+    def _on_recording_error(self, text: str) -> None:
+        self.recording_error = text
+        self.recorder = None
+        self.get_logger().error(f"{text}; the twin keeps running without recording")
+
+    def destroy_node(self) -> None:
+        """Finish the recording (if any), then destroy the node."""
+        if self.recorder is not None:
+            self.recorder.close()
+            self.recorder = None
+        super().destroy_node()
 
     # ---------------------------------------------------------------- callbacks
     def _warn(self, key: str, text: str, period: float = 1.0) -> None:
@@ -283,6 +320,8 @@ class TwinNode(Node):
         status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: solver", hardware_id="dea_array_twin")
         if self.last_error:
             status.level, status.message = DiagnosticStatus.ERROR, f"last solve failed: {self.last_error}"
+        elif self.recording_error:
+            status.level, status.message = DiagnosticStatus.WARN, self.recording_error
         elif res is not None and not res.ok:
             status.level, status.message = DiagnosticStatus.WARN, "; ".join(res.warnings)
         else:
@@ -292,6 +331,7 @@ class TwinNode(Node):
         self._update_times = recent
         values = dict(self.counters)
         values["achieved_update_rate_hz"] = len(recent)
+        values["recording"] = str(self.recorder.writer.path) if self.recorder else (self.recording_error or "off")
         if res is not None:
             values.update(iterations=res.iterations, residual_N=res.residual, solve_time_ms=1e3 * res.solve_time,
                           stable=res.stable, wrinkled=res.wrinkled, field_exceeded=res.field_exceeded,

@@ -1,0 +1,202 @@
+"""``dea-twin plot BAG -o run.png``: a recorded or replayed run at a glance.
+
+Three stacked axes over time, one colour per unit: the commands (displacement [mm],
+solid, left scale; voltage [V], dashed, right scale; drawn as held values), the
+forces [N] and the capacitances [pF].  Reads any bag :class:`~.replay.Bag` opens: a
+recording of the twin node, a rig's command bag (outputs then empty) or the MCAP
+written by ``dea-twin replay``.  Topics are chosen as ``replay`` chooses them
+(``--topic-map`` included).  Time runs from the bag's first message, or from the
+``time_origin_ns`` a replay output records, so the plot's time axis matches the
+replay's CSV.
+
+Uses matplotlib's object-oriented API on the Agg canvas (no pyplot, no global
+backend switch), so it runs headless and inside notebooks alike.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from .replay import REPLAY_METADATA, Bag, BagError, command_topics, output_topics, parse_topic_map
+
+__all__ = ["Series", "add_arguments", "load_series", "plot_series", "run_from_args"]
+
+#: Channel -> (axis label, factor from SI to the plotted unit).
+_UNITS = {"displacement": ("displacement [mm]", 1e3), "voltage": ("voltage [V]", 1.0),
+          "force": ("force [N]", 1.0), "capacitance": ("capacitance [pF]", 1e12)}
+
+
+class Series(NamedTuple):
+    """One channel of a bag: times [s] from the origin and values, shape (m, n_units), SI units."""
+
+    topic: str
+    time_s: np.ndarray
+    values: np.ndarray
+
+
+def load_series(bag: Bag, topic_map: dict[str, str] | None = None) -> tuple[dict[str, Series], float]:
+    """Read the command and output channels of a bag.
+
+    Messages whose length differs from the first one's of the same channel are dropped
+    (a rejected command of the wrong length).
+
+    Returns
+    -------
+    series : dict
+        Channel (``displacement``, ``voltage``, ``force``, ``capacitance``) -> :class:`Series`;
+        only the channels present.
+    end_s : float
+        Time of the last message read [s], where held commands are drawn to.
+
+    Raises
+    ------
+    BagError
+        No command and no output topic in the bag.
+    """
+    try:
+        commands = command_topics(bag, topic_map)
+    except BagError:
+        commands = {}
+    outputs = output_topics(bag, commands, topic_map)
+    if not commands and not outputs:
+        raise BagError(f"{bag.path}: nothing to plot (no topics ending with command/displacement, "
+                       f"command/voltage, force or capacitance). Topics present:\n{bag.describe_topics()}")
+    topics = {**commands, **outputs}
+    origin = bag.start_ns
+    replay_info = bag.metadata(REPLAY_METADATA) or {}
+    try:
+        origin = int(replay_info["time_origin_ns"])
+    except (KeyError, ValueError):
+        pass
+    kind_of = {topic: kind for kind, topic in topics.items()}
+    times: dict[str, list[int]] = {k: [] for k in topics}
+    values: dict[str, list[list[float]]] = {k: [] for k in topics}
+    last = None
+    for msg in bag.messages(topics.values(), decode=True):
+        kind = kind_of[msg.topic]
+        data = list(msg.decoded.data)
+        if values[kind] and len(data) != len(values[kind][0]):
+            continue
+        if origin is None:
+            origin = msg.log_time_ns
+        times[kind].append(msg.log_time_ns)
+        values[kind].append(data)
+        last = msg.log_time_ns
+    out = {}
+    for kind, topic in topics.items():
+        if times[kind]:
+            t = (np.array(times[kind], dtype=np.int64) - origin) * 1e-9
+            out[kind] = Series(topic, t, np.array(values[kind], dtype=float))
+    end_s = 0.0 if last is None or origin is None else (last - origin) * 1e-9
+    return out, end_s
+
+
+def plot_series(series: dict[str, Series], end_s: float, path: str | Path, title: str = "") -> Path:
+    """Draw the three stacked axes and save them as a PNG.
+
+    Parameters
+    ----------
+    series
+        From :func:`load_series`.
+    end_s
+        Where the held commands end [s].
+    path
+        The image to write (its suffix picks the format; ``.png`` recommended).
+    title
+        Figure title.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    n = max((s.values.shape[1] for s in series.values()), default=1)
+    colours = [f"C{k % 10}" for k in range(n)]
+    fig = Figure(figsize=(10, 9), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax_cmd, ax_force, ax_cap = fig.subplots(3, 1, sharex=True)
+    ax_volt = ax_cmd.twinx()
+    unit_handles = [Line2D([], [], color=colours[k], label=f"unit {k + 1}") for k in range(n)]
+
+    def draw(ax, kind: str, style: str, held: bool) -> None:
+        label, factor = _UNITS[kind]
+        ax.set_ylabel(label)
+        s = series.get(kind)
+        if s is None:
+            return
+        t, v = s.time_s, s.values * factor
+        if held and len(t):  # sample and hold up to the end of the recording
+            t = np.append(t, max(end_s, t[-1]))
+            v = np.vstack([v, v[-1:]])
+        for k in range(v.shape[1]):
+            ax.plot(t, v[:, k], style, color=colours[k], drawstyle="steps-post" if held else "default", lw=1.4)
+
+    draw(ax_cmd, "displacement", "-", True)
+    draw(ax_volt, "voltage", "--", True)
+    draw(ax_force, "force", "-", False)
+    draw(ax_cap, "capacitance", "-", False)
+    ax_cmd.set_title("commands")
+    ax_force.set_title("force on each indenter")
+    ax_cap.set_title("capacitance of each unit")
+    style_handles = [Line2D([], [], color="k", ls="-", label="displacement (left)"),
+                     Line2D([], [], color="k", ls="--", label="voltage (right)")]
+    ax_cmd.legend(handles=unit_handles + style_handles, loc="upper left", bbox_to_anchor=(1.08, 1.0),
+                  fontsize="small", title="units", title_fontsize="small")
+    for ax, kind in ((ax_force, "force"), (ax_cap, "capacitance")):
+        ax.legend(handles=unit_handles, loc="upper left", bbox_to_anchor=(1.08, 1.0), fontsize="small",
+                  title="units", title_fontsize="small")
+        if kind not in series:
+            ax.text(0.5, 0.5, f"no {kind} messages in the bag", transform=ax.transAxes, ha="center",
+                    va="center", color="0.5")
+    for ax in (ax_cmd, ax_force, ax_cap):
+        ax.grid(True, alpha=0.3)
+    ax_cap.set_xlabel("time [s]")
+    sources = ", ".join(s.topic for s in series.values())
+    fig.suptitle(f"{title}\n{sources}" if title else sources, fontsize="medium")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The ``dea-twin plot`` options."""
+    parser.add_argument("bag", help="an .mcap file or a rosbag2 directory (a recording or a replay output)")
+    parser.add_argument("-o", "--output", help="image to write (default: <bag stem>.png next to the bag)")
+    parser.add_argument("--topic-map", nargs="+", action="extend", default=[], metavar="OLD=NEW",
+                        help="use recorded topic OLD as NEW (e.g. /rig/disp=command/displacement)")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Run ``dea-twin plot`` for parsed arguments; return the exit code (0 ok, 2 bad input)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        print("dea-twin plot: error: needs matplotlib (pip install 'dea_array_twin[plot]')", file=sys.stderr)
+        return 2
+    try:
+        bag = Bag(args.bag)
+        series, end_s = load_series(bag, parse_topic_map(args.topic_map))
+        if args.output:
+            out = Path(args.output)
+        else:
+            resolved = bag.path.resolve()
+            out = resolved.parent / f"{resolved.name if resolved.is_dir() else resolved.stem}.png"
+        plot_series(series, end_s, out, title=bag.path.name)
+    except BagError as exc:
+        print(f"dea-twin plot: error: {exc}", file=sys.stderr)
+        return 2
+    except (OSError, ValueError) as exc:  # cannot write the image, unknown image format
+        print(f"dea-twin plot: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {out}")
+    return 0
