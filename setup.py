@@ -69,6 +69,7 @@ setup(
     extras_require={
         'test': ['pytest'],
         'mcap': ['mcap>=1.5', 'mcap-ros2-support', 'rosbags'],
+        'plot': ['matplotlib'],
     },
     zip_safe=True,
     maintainer='dea_array_twin developers',

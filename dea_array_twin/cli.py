@@ -72,6 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
         "replay", help="re-run the twin on a recorded bag's commands (MCAP + CSV out, FIT against recorded "
                        "outputs), or republish them with --realtime"))
     plot.add_arguments(sub.add_parser("plot", help="plot commands, forces and capacitances of a bag to a PNG"))
+    rec = sub.add_parser("bag-recover", help="complete copy of an MCAP file whose writer was killed")
+    rec.add_argument("src", help="the killed recording")
+    rec.add_argument("dst", help="where to write the recovered file")
     return parser
 
 
@@ -162,6 +165,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .demo import run_demo
 
         return run_demo(_node_args(args.config, []), args.duration)
+    if args.command == "bag-recover":
+        from .bag_recover import main as recover_main
+
+        return recover_main([args.src, args.dst])
     if args.command in ("replay", "plot"):
         from . import plot, replay
 

@@ -44,7 +44,10 @@ if not hasattr(Writer, "flush"):  # pragma: no cover - depends on the install
     raise ImportError("dea_array_twin.mcap_writer needs mcap >= 1.5 (Writer.flush closes a chunk on demand); "
                       f"found mcap {getattr(mcap, '__version__', '?')}")
 
-__all__ = ["RecordingError", "Ros2McapWriter", "default_qos_yaml", "message_definition", "type_hash"]
+__all__ = ["CONFIG_RECORD", "RecordingError", "Ros2McapWriter", "default_qos_yaml", "message_definition", "type_hash"]
+
+#: Metadata record in which the twin stores its config (field -> str(value)).
+CONFIG_RECORD = "dea_array_twin_config"
 
 PROFILE = "ros2"
 SCHEMA_ENCODING = "ros2msg"

@@ -16,13 +16,15 @@ backend switch), so it runs headless and inside notebooks alike.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
-from .replay import REPLAY_METADATA, Bag, BagError, command_topics, output_topics, parse_topic_map
+from .replay import COMMANDS, REPLAY_METADATA, Bag, BagError, output_topics, parse_topic_map, select_topic
 
 __all__ = ["Series", "add_arguments", "load_series", "plot_series", "run_from_args"]
 
@@ -42,8 +44,8 @@ class Series(NamedTuple):
 def load_series(bag: Bag, topic_map: dict[str, str] | None = None) -> tuple[dict[str, Series], float]:
     """Read the command and output channels of a bag.
 
-    Messages whose length differs from the first one's of the same channel are dropped
-    (a rejected command of the wrong length).
+    Messages the twin would reject are dropped: another length than most messages of the
+    channel, or NaN/inf in a command.
 
     Returns
     -------
@@ -56,12 +58,10 @@ def load_series(bag: Bag, topic_map: dict[str, str] | None = None) -> tuple[dict
     Raises
     ------
     BagError
-        No command and no output topic in the bag.
+        No command and no output topic in the bag, or an ambiguous one (see ``--topic-map``).
     """
-    try:
-        commands = command_topics(bag, topic_map)
-    except BagError:
-        commands = {}
+    commands = {kind: topic for kind in COMMANDS
+                if (topic := select_topic(bag.topics, f"command/{kind}", topic_map)) is not None}
     outputs = output_topics(bag, commands, topic_map)
     if not commands and not outputs:
         raise BagError(f"{bag.path}: nothing to plot (no topics ending with command/displacement, "
@@ -78,20 +78,22 @@ def load_series(bag: Bag, topic_map: dict[str, str] | None = None) -> tuple[dict
     values: dict[str, list[list[float]]] = {k: [] for k in topics}
     last = None
     for msg in bag.messages(topics.values(), decode=True):
-        kind = kind_of[msg.topic]
-        data = list(msg.decoded.data)
-        if values[kind] and len(data) != len(values[kind][0]):
-            continue
         if origin is None:
             origin = msg.log_time_ns
+        kind = kind_of[msg.topic]
         times[kind].append(msg.log_time_ns)
-        values[kind].append(data)
+        values[kind].append(list(msg.decoded.data))
         last = msg.log_time_ns
     out = {}
     for kind, topic in topics.items():
-        if times[kind]:
-            t = (np.array(times[kind], dtype=np.int64) - origin) * 1e-9
-            out[kind] = Series(topic, t, np.array(values[kind], dtype=float))
+        lengths = Counter(len(v) for v in values[kind])
+        n = lengths.most_common(1)[0][0] if lengths else 0
+        # what the twin would reject: another length than most messages, NaN/inf in a command
+        keep = [i for i, v in enumerate(values[kind])
+                if n and len(v) == n and (kind in ("force", "capacitance") or all(map(math.isfinite, v)))]
+        if keep:
+            t = (np.array([times[kind][i] for i in keep], dtype=np.int64) - origin) * 1e-9
+            out[kind] = Series(topic, t, np.array([values[kind][i] for i in keep], dtype=float))
     end_s = 0.0 if last is None or origin is None else (last - origin) * 1e-9
     return out, end_s
 
@@ -121,42 +123,42 @@ def plot_series(series: dict[str, Series], end_s: float, path: str | Path, title
 
     n = max((s.values.shape[1] for s in series.values()), default=1)
     colours = [f"C{k % 10}" for k in range(n)]
+    widths = np.linspace(2.6, 1.2, n) if n > 1 else [1.6]  # later units drawn thinner: overlaps stay visible
     fig = Figure(figsize=(10, 9), layout="constrained")
     FigureCanvasAgg(fig)
     ax_cmd, ax_force, ax_cap = fig.subplots(3, 1, sharex=True)
     ax_volt = ax_cmd.twinx()
-    unit_handles = [Line2D([], [], color=colours[k], label=f"unit {k + 1}") for k in range(n)]
 
-    def draw(ax, kind: str, style: str, held: bool) -> None:
+    def draw(ax, kind: str, style: str) -> None:
         label, factor = _UNITS[kind]
         ax.set_ylabel(label)
         s = series.get(kind)
         if s is None:
-            return
-        t, v = s.time_s, s.values * factor
-        if held and len(t):  # sample and hold up to the end of the recording
-            t = np.append(t, max(end_s, t[-1]))
-            v = np.vstack([v, v[-1:]])
-        for k in range(v.shape[1]):
-            ax.plot(t, v[:, k], style, color=colours[k], drawstyle="steps-post" if held else "default", lw=1.4)
-
-    draw(ax_cmd, "displacement", "-", True)
-    draw(ax_volt, "voltage", "--", True)
-    draw(ax_force, "force", "-", False)
-    draw(ax_cap, "capacitance", "-", False)
-    ax_cmd.set_title("commands")
-    ax_force.set_title("force on each indenter")
-    ax_cap.set_title("capacitance of each unit")
-    style_handles = [Line2D([], [], color="k", ls="-", label="displacement (left)"),
-                     Line2D([], [], color="k", ls="--", label="voltage (right)")]
-    ax_cmd.legend(handles=unit_handles + style_handles, loc="upper left", bbox_to_anchor=(1.08, 1.0),
-                  fontsize="small", title="units", title_fontsize="small")
-    for ax, kind in ((ax_force, "force"), (ax_cap, "capacitance")):
-        ax.legend(handles=unit_handles, loc="upper left", bbox_to_anchor=(1.08, 1.0), fontsize="small",
-                  title="units", title_fontsize="small")
-        if kind not in series:
             ax.text(0.5, 0.5, f"no {kind} messages in the bag", transform=ax.transAxes, ha="center",
                     va="center", color="0.5")
+            return
+        # every channel holds its value until the next message (sample and hold, quasi-static
+        # outputs): steps, drawn on to the end of the recording
+        t = np.append(s.time_s, max(end_s, s.time_s[-1]))
+        v = np.vstack([s.values, s.values[-1:]]) * factor
+        for k in range(v.shape[1]):
+            ax.plot(t, v[:, k], style, color=colours[k], drawstyle="steps-post", lw=widths[k])
+
+    draw(ax_cmd, "displacement", "-")
+    if "voltage" in series:
+        draw(ax_volt, "voltage", "--")
+    else:
+        ax_volt.set_visible(False)
+    draw(ax_force, "force", "-")
+    draw(ax_cap, "capacitance", "-")
+    ax_cmd.set_title("commands (held)")
+    ax_force.set_title("force on each indenter")
+    ax_cap.set_title("capacitance of each unit")
+    handles = [Line2D([], [], color=colours[k], lw=widths[k], label=f"unit {k + 1}") for k in range(n)]
+    if "voltage" in series:
+        handles += [Line2D([], [], color="k", ls="-", label="displacement\n(left scale)"),
+                    Line2D([], [], color="k", ls="--", label="voltage\n(right scale)")]
+    fig.legend(handles=handles, loc="outside right upper", fontsize="small")
     for ax in (ax_cmd, ax_force, ax_cap):
         ax.grid(True, alpha=0.3)
     ax_cap.set_xlabel("time [s]")

@@ -18,10 +18,7 @@ from typing import Callable
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from .mcap_writer import RecordingError, Ros2McapWriter, default_qos_yaml
-
-#: Metadata record holding the twin's config (field -> str(value)).
-CONFIG_RECORD = "dea_array_twin_config"
+from .mcap_writer import CONFIG_RECORD, RecordingError, Ros2McapWriter, default_qos_yaml
 
 #: Relative topic name -> ROS type recorded by the twin.
 RECORDED_TOPICS = {

@@ -68,13 +68,13 @@ import yaml
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .model import DRIVEN, MODES
+from .mcap_writer import CONFIG_RECORD
 from .solver import ConvergenceError
 from .twin import ArrayTwin
 
 __all__ = ["Bag", "BagError", "BagMessage", "ReplayRun", "compare_outputs", "fit", "parse_topic_map",
            "realtime_replay", "replay_commands", "run_from_args", "select_topic"]
 
-CONFIG_METADATA = "dea_array_twin_config"
 REPLAY_METADATA = "dea_array_twin_replay"
 NON_CONFIG_KEYS = ("unit_modes", "update_rate")
 FLOAT_ARRAY = "std_msgs/msg/Float64MultiArray"
@@ -165,7 +165,7 @@ def _mcap_modules():
 
 def _damage_errors() -> tuple[type[BaseException], ...]:
     McapError, _, _ = _mcap_modules()
-    return (McapError, struct.error, ValueError, EOFError, UnicodeDecodeError, KeyError)
+    return (McapError, struct.error, ValueError, EOFError, UnicodeDecodeError, KeyError, IndexError)
 
 
 def bag_files(path: str | Path) -> list[Path]:
@@ -175,13 +175,14 @@ def bag_files(path: str | Path) -> list[Path]:
     ----------
     path
         A ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` plus ``.mcap``
-        files; their order is ``relative_file_paths`` in ``metadata.yaml`` if given,
-        else sorted by name).
+        files, in the order of its ``relative_file_paths``), or a folder holding one
+        recording split by the twin's recorder (``X.mcap``, ``X_1.mcap``, ...).
 
     Raises
     ------
     BagError
-        The path does not exist, or the directory holds no ``.mcap`` file.
+        The path does not exist, or the directory holds no ``.mcap`` file or several
+        recordings.
     """
     path = Path(path)
     if not path.exists():
@@ -202,11 +203,33 @@ def bag_files(path: str | Path) -> list[Path]:
         listed = [path / p for p in info.get("relative_file_paths", []) or [] if str(p).endswith(".mcap")]
         listed = [p for p in listed if p.is_file()]
     if not listed:
-        listed = sorted(path.glob("*.mcap"))
-    if not listed:
-        present = ", ".join(sorted(p.name for p in path.iterdir())[:10]) or "nothing"
-        raise BagError(f"{path} holds no .mcap file (found: {present})")
+        listed = _one_series(path, sorted(path.glob("*.mcap")))
     return listed
+
+
+def _one_series(folder: Path, files: list[Path]) -> list[Path]:
+    """The files of a folder without ``metadata.yaml``: one recording, ``X.mcap`` plus its splits ``X_<n>.mcap``.
+
+    Raises
+    ------
+    BagError
+        No file, or several recordings (say which, so the user can pick one).
+    """
+    if not files:
+        present = ", ".join(sorted(p.name for p in folder.iterdir())[:10]) or "nothing"
+        raise BagError(f"{folder} holds no .mcap file (found: {present})")
+    stems = {p.stem for p in files}
+    bases = [p for p in files if not any(p.stem.startswith(s + "_") and p.stem[len(s) + 1:].isdigit() for s in stems)]
+    if len(bases) != 1:
+        names = ", ".join(p.name for p in bases[:6]) + (", ..." if len(bases) > 6 else "")
+        raise BagError(f"{folder} holds {len(bases)} recordings ({names}) and no rosbag2 metadata.yaml; "
+                       f"pass one .mcap file")
+    base = bases[0].stem
+
+    def split_number(p: Path) -> int:
+        return 0 if p.stem == base else int(p.stem[len(base) + 1:])
+
+    return sorted(files, key=split_number)
 
 
 def _recover_hint(path: Path) -> str:
@@ -314,7 +337,8 @@ class Bag:
         """The topics present, one per line with type and message count."""
         if not self.topics:
             return "    (no topics)"
-        return "\n".join(f"    {t}  [{self.topics[t] or '?'}]  {self.counts.get(t, 0)} msgs" for t in sorted(self.topics))
+        return "\n".join(f"    {t}  [{self.topics[t] or '?'}]  {self.counts.get(t, 0)} msgs"
+                         for t in sorted(self.topics))
 
     def messages(self, topics: Iterable[str], decode: bool = False) -> Iterator[BagMessage]:
         """The messages of ``topics`` over all files, in log-time order.
@@ -445,7 +469,7 @@ def output_topics(bag: Bag, commands: dict[str, str], topic_map: dict[str, str] 
     namespace = None
     for kind, topic in commands.items():
         suffix = f"/command/{kind}"
-        if topic.endswith(suffix) and topic not in (topic_map or {}):
+        if topic.endswith(suffix):
             namespace = topic[: -len(suffix)]
     found = {}
     for kind in OUTPUTS:
@@ -515,7 +539,7 @@ def resolve_config(bag: Bag, config_path: str | None,
         Bad config file, bad recorded config, or modes of the wrong length or value.
     """
     notes = []
-    recorded = bag.metadata(CONFIG_METADATA)
+    recorded = bag.metadata(CONFIG_RECORD)
     recorded_modes = None
     if recorded is not None:
         try:
@@ -529,7 +553,7 @@ def resolve_config(bag: Bag, config_path: str | None,
         notes.append(f"config from {config_path}")
     elif recorded is not None:
         cfg = recorded_cfg
-        notes.append(f"config from the bag's '{CONFIG_METADATA}' metadata")
+        notes.append(f"config from the bag's '{CONFIG_RECORD}' metadata")
         if ignored:
             notes.append(f"warning: ignoring unknown recorded config keys {ignored} (another version of the twin?)")
     else:
@@ -605,7 +629,7 @@ def _warning_kind(text: str) -> str:
 
 
 def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tuple[int, str, Sequence[float]]],
-                    total: int | None = None, progress: bool = True) -> ReplayRun:
+                    total: int | None = None, progress: bool = True, time_origin_ns: int = 0) -> ReplayRun:
     """Run the twin on commands in order, sample and hold: one solve per accepted command.
 
     Parameters
@@ -621,6 +645,8 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
         Number of commands, for the progress bar.
     progress
         Show a tqdm bar on stderr (only on a terminal).
+    time_origin_ns
+        Log time shown as t = 0 in messages.
 
     Returns
     -------
@@ -644,18 +670,19 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
         for log_time, kind, values in commands:
             bar.update(1)
             values = list(values)
+            t_s = (log_time - time_origin_ns) * 1e-9
             problem = command_error(kind, values, twin.config)
             if problem:
                 skipped[kind] += 1
                 if sum(skipped.values()) <= _MAX_LISTED_WARNINGS:
-                    bar.write(f"dea-twin replay: warning: skipping {kind} command at log time {log_time} ns: {problem}",
+                    bar.write(f"dea-twin replay: warning: skipping {kind} command at t = {t_s:.6f} s: {problem}",
                               file=sys.stderr)
                 continue
             held[kind] = np.asarray(values, dtype=float)
             try:
                 res = twin.solve(held["displacement"], held["voltage"], modes, check_stability=False)
             except (ConvergenceError, ValueError) as exc:
-                error = (f"solve failed at log time {log_time} ns ({kind} command {values}): {exc}")
+                error = f"solve failed at t = {t_s:.6f} s ({kind} command {values}): {exc}"
                 break
             for text in res.warnings:
                 state_warnings[_warning_kind(text)] += 1
@@ -680,7 +707,8 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
                      skipped=skipped, state_warnings=state_warnings, error=error)
 
 
-def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:
+def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.ndarray]],
+                    lag_ns: int = 0) -> dict[str, np.ndarray]:
     """FIT per unit of the replayed outputs against recorded ones.
 
     Parameters
@@ -689,8 +717,13 @@ def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.nda
         The replay.
     recorded
         ``{"force": (times_ns, values), "capacitance": ...}``, values of shape (m, n).
-        Each recorded message is compared with the replayed state current at its log
-        time: the latest solve at or before it, or the zero-command state before the first.
+        Each recorded message is compared with the replayed state current ``lag_ns``
+        before its log time: the latest solve at or before then, or the zero-command
+        state before the first.
+    lag_ns
+        How far the recorded outputs lag their commands [ns].  The live node answers
+        a command at its next update, and its timer may run before the command's
+        callback, so a recording at ``update_rate`` lags by up to one period.
 
     Returns
     -------
@@ -700,7 +733,7 @@ def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.nda
     out = {}
     for kind, (times, values) in recorded.items():
         model_rows = np.vstack([getattr(run, f"initial_{kind}")[None, :], getattr(run, kind)])
-        idx = np.searchsorted(run.times_ns, np.asarray(times, dtype=np.int64), side="right")
+        idx = np.searchsorted(run.times_ns, np.asarray(times, dtype=np.int64) - int(lag_ns), side="right")
         model = model_rows[idx]
         out[kind] = np.array([fit(values[:, k], model[:, k]) for k in range(values.shape[1])])
     return out
@@ -760,7 +793,7 @@ def write_csv(path: Path, run: ReplayRun, origin_ns: int) -> None:
         writer = csv.writer(f)
         writer.writerow(csv_header(n))
         for i, t in enumerate(run.times_ns.tolist()):
-            writer.writerow([(t - origin_ns) * 1e-9, *run.displacement[i].tolist(), *run.voltage[i].tolist(),
+            writer.writerow([round((t - origin_ns) * 1e-9, 9), *run.displacement[i].tolist(), *run.voltage[i].tolist(),
                              *run.force[i].tolist(), *run.capacitance[i].tolist()])
 
 
@@ -792,7 +825,7 @@ def _log(text: str) -> None:
 
 
 def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None, modes: Sequence[str] | None,
-                   out: str | None) -> int:
+                   out: str | None, fit_lag: float | None = None) -> int:
     """``dea-twin replay BAG``: re-run the twin, write OUT.mcap and OUT.csv, print FIT; the exit code."""
     commands = command_topics(bag, topic_map)
     outputs = output_topics(bag, commands, topic_map)
@@ -825,11 +858,12 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
                 recorded[kind][1].append(values)
 
     total = sum(bag.counts.get(t, 0) for t in commands.values()) or None
+    origin = bag.start_ns or 0
     tic = time.perf_counter()
-    run = replay_commands(twin, modes, command_stream(), total=total)
+    run = replay_commands(twin, modes, command_stream(), total=total, time_origin_ns=origin)
     elapsed = time.perf_counter() - tic
     for kind, count in run.skipped.items():
-        _log(f"warning: skipped {count} invalid {kind} command(s) (first ones listed above)")
+        _log(f"warning: skipped {count} invalid {kind} command(s)")
     for text, count in run.state_warnings.items():
         _log(f"warning: {count} replayed state(s) flagged: {text}")
     for kind, count in bad_outputs.items():
@@ -837,8 +871,7 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     if run.n_solves == 0 and run.error is None:
         raise BagError(f"no valid command in {bag.path} ({sum(run.skipped.values())} rejected); "
                        f"does the config match the recording? (--config)")
-    origin = bag.start_ns if bag.start_ns is not None else int(run.times_ns[0]) if run.n_solves else 0
-    metadata = {CONFIG_METADATA: metadata_from_config(cfg, modes),
+    metadata = {CONFIG_RECORD: metadata_from_config(cfg, modes),
                 REPLAY_METADATA: {"source": str(bag.path.resolve()), "time_origin_ns": str(origin),
                                   "config_source": notes[0], "solves": str(run.n_solves)}}
     write_mcap(mcap_path, run, metadata)
@@ -852,7 +885,12 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     data = {k: (np.array(t, dtype=np.int64), np.array(v, dtype=float).reshape(-1, n))
             for k, (t, v) in recorded.items() if t}
     if data:
-        fits = compare_outputs(run, data)
+        if fit_lag is None:
+            rate = float((bag.metadata(CONFIG_RECORD) or {}).get("update_rate", 0.0) or 0.0)
+            fit_lag = 1.0 / rate if rate > 0 else 0.0
+        _log(f"FIT compares each recorded output with the replayed state {fit_lag * 1e3:.1f} ms before it "
+             "(one update period of the recording node; --fit-lag to change)")
+        fits = compare_outputs(run, data, int(round(fit_lag * 1e9)))
         print(_fit_table(fits, outputs, {k: len(v[0]) for k, v in data.items()}))
     return 0
 
@@ -888,6 +926,7 @@ def realtime_replay(bag: Bag, topic_map: dict[str, str], rate: float = 1.0, wait
     from rclpy.duration import Duration
     from rclpy.node import Node
     from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
     from tqdm import tqdm
 
     if not (rate > 0 and math.isfinite(rate)):
@@ -897,7 +936,9 @@ def realtime_replay(bag: Bag, topic_map: dict[str, str], rate: float = 1.0, wait
     classes = {topic: _message_class(bag.topics[topic] or FLOAT_ARRAY) for topic in commands.values()}
     total = sum(bag.counts.get(t, 0) for t in commands.values())
     context = Context()
-    rclpy.init(context=context)
+    # Nothing spins here, so rclpy's signal handlers are not needed; without them Ctrl-C
+    # raises KeyboardInterrupt in the sleep between messages.
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     sent = 0
     try:
@@ -926,8 +967,12 @@ def realtime_replay(bag: Bag, topic_map: dict[str, str], rate: float = 1.0, wait
                 pubs[msg.topic].publish(msg.data)
                 sent += 1
                 bar.update(1)
-        for pub in pubs.values():  # reliable delivery of the last messages before we go
-            pub.wait_for_all_acked(Duration(seconds=1.0))
+        # Let reliable subscribers acknowledge the last messages before the publishers go.
+        # Bounded: Fast DDS readers acknowledge on the writer's heartbeat (seconds), and
+        # best-effort readers never do; on localhost the data has arrived long before.
+        linger = time.monotonic() + 0.5
+        for pub in pubs.values():
+            pub.wait_for_all_acked(Duration(nanoseconds=max(0, int((linger - time.monotonic()) * 1e9))))
         _log(f"published {sent} message(s)")
         return 0
     except KeyboardInterrupt:
@@ -951,6 +996,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="use recorded topic OLD as NEW (e.g. /rig/disp=command/displacement)")
     parser.add_argument("--modes", type=lambda t: t.replace(",", " ").split(),
                         help="per-unit 'driven' or 'free', comma separated (default: recorded, else all driven)")
+    parser.add_argument("--fit-lag", type=float, default=None, metavar="SECONDS",
+                        help="compare each recorded output with the replayed state this long before it "
+                             "(default: one update period of the recording node, 0 if unknown)")
     parser.add_argument("--realtime", action="store_true",
                         help="republish the recorded commands on ROS 2 with their timing instead of simulating")
     parser.add_argument("--rate", type=float, default=None, help="--realtime speed factor (default 1)")
@@ -970,7 +1018,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             return realtime_replay(Bag(args.bag), topic_map, 1.0 if args.rate is None else args.rate, args.wait)
         if args.rate is not None:
             raise BagError("--rate needs --realtime")
-        return replay_offline(Bag(args.bag), topic_map, args.config, args.modes, args.out)
+        return replay_offline(Bag(args.bag), topic_map, args.config, args.modes, args.out, args.fit_lag)
     except (BagError, ConfigError) as exc:
         print(f"dea-twin replay: error: {exc}", file=sys.stderr)
         return 2
