@@ -22,11 +22,9 @@ import time
 from typing import Sequence
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
@@ -38,6 +36,7 @@ from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .model import DRIVEN, MODES
 from .ros_params import RUNTIME_FIELDS, config_descriptor, config_fields
+from .rosmain import spin_node
 from .solver import ConvergenceError
 from .twin import ArrayTwin, TwinResult
 
@@ -345,20 +344,7 @@ class TwinNode(Node):
 
 def main(args: Sequence[str] | None = None) -> None:
     """Entry point of ``twin_node`` (``ros2 run dea_array_twin twin_node``)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = TwinNode()
-        rclpy.spin(node)
-    except ConfigError as exc:
-        rclpy.logging.get_logger("dea_array_twin").fatal(f"invalid parameter: {exc}")
-        raise SystemExit(2) from None
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(TwinNode, "dea_array_twin", args)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .replay import COMMANDS, REPLAY_METADATA, Bag, BagError, output_topics, parse_topic_map, select_topic
+from .replay import (
+    COMMANDS,
+    REPLAY_METADATA,
+    Bag,
+    BagError,
+    output_topics,
+    parse_topic_map,
+    select_topic,
+)
 
 __all__ = ["Series", "add_arguments", "load_series", "plot_series", "run_from_args"]
 

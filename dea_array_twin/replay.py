@@ -67,8 +67,8 @@ import yaml
 
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
-from .model import DRIVEN, MODES
 from .mcap_writer import CONFIG_RECORD
+from .model import DRIVEN, MODES
 from .solver import ConvergenceError
 from .twin import ArrayTwin
 
@@ -717,13 +717,12 @@ def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.nda
         The replay.
     recorded
         ``{"force": (times_ns, values), "capacitance": ...}``, values of shape (m, n).
-        Each recorded message is compared with the replayed state current ``lag_ns``
-        before its log time: the latest solve at or before then, or the zero-command
-        state before the first.
     lag_ns
-        How far the recorded outputs lag their commands [ns].  The live node answers
-        a command at its next update, and its timer may run before the command's
-        callback, so a recording at ``update_rate`` lags by up to one period.
+        Largest latency of the recorded outputs behind their commands [ns].  Each
+        recorded message is compared with the replayed state current at its log time
+        or, if one fits it better, with a state current up to ``lag_ns`` earlier (the
+        live node answers a command at one of its next updates).  0 pairs each message
+        with the latest solve at or before it (or the zero-command state before the first).
 
     Returns
     -------
@@ -733,7 +732,13 @@ def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.nda
     out = {}
     for kind, (times, values) in recorded.items():
         model_rows = np.vstack([getattr(run, f"initial_{kind}")[None, :], getattr(run, kind)])
-        idx = np.searchsorted(run.times_ns, np.asarray(times, dtype=np.int64) - int(lag_ns), side="right")
+        times = np.asarray(times, dtype=np.int64)
+        last = np.searchsorted(run.times_ns, times, side="right")
+        first = np.searchsorted(run.times_ns, times - int(lag_ns), side="right")
+        idx = last.copy()
+        for i in np.flatnonzero(first < last):  # several candidate states: take the closest
+            candidates = np.arange(first[i], last[i] + 1)
+            idx[i] = candidates[np.argmin(np.abs(model_rows[candidates] - values[i]).sum(axis=1))]
         model = model_rows[idx]
         out[kind] = np.array([fit(values[:, k], model[:, k]) for k in range(values.shape[1])])
     return out
@@ -887,9 +892,9 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     if data:
         if fit_lag is None:
             rate = float((bag.metadata(CONFIG_RECORD) or {}).get("update_rate", 0.0) or 0.0)
-            fit_lag = 1.0 / rate if rate > 0 else 0.0
-        _log(f"FIT compares each recorded output with the replayed state {fit_lag * 1e3:.1f} ms before it "
-             "(one update period of the recording node; --fit-lag to change)")
+            fit_lag = 3.0 / rate if rate > 0 else 0.0
+        _log(f"FIT pairs each recorded output with a replayed state current up to {fit_lag * 1e3:.1f} ms before "
+             "it (three update periods of the recording node; --fit-lag to change)")
         fits = compare_outputs(run, data, int(round(fit_lag * 1e9)))
         print(_fit_table(fits, outputs, {k: len(v[0]) for k, v in data.items()}))
     return 0
@@ -997,8 +1002,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--modes", type=lambda t: t.replace(",", " ").split(),
                         help="per-unit 'driven' or 'free', comma separated (default: recorded, else all driven)")
     parser.add_argument("--fit-lag", type=float, default=None, metavar="SECONDS",
-                        help="compare each recorded output with the replayed state this long before it "
-                             "(default: one update period of the recording node, 0 if unknown)")
+                        help="largest latency of recorded outputs behind their commands (default: three update "
+                             "periods of the recording node, 0 if unknown)")
     parser.add_argument("--realtime", action="store_true",
                         help="republish the recorded commands on ROS 2 with their timing instead of simulating")
     parser.add_argument("--rate", type=float, default=None, help="--realtime speed factor (default 1)")

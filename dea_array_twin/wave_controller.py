@@ -37,10 +37,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
@@ -51,6 +48,8 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 INPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 SETTLE, RISE, RETURN, DONE = "settle", "rise", "return", "done"
+
+from .rosmain import spin_node
 
 
 @dataclass(frozen=True)
@@ -314,21 +313,7 @@ class WaveController(Node):
 
 def main(args: Sequence[str] | None = None) -> None:
     """Entry point of ``wave_controller`` (``ros2 run dea_array_twin wave_controller``)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = WaveController()
-        except (ValueError, ParameterException) as exc:
-            rclpy.logging.get_logger("wave_controller").fatal(f"invalid parameter: {exc}")
-            raise SystemExit(2) from None
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(WaveController, "wave_controller", args)
 
 
 if __name__ == "__main__":

@@ -5,7 +5,12 @@ import math
 import numpy as np
 import pytest
 
-from dea_array_twin import ArrayConfig, ArrayTwin, ConfigError, ConvergenceError, NewtonSettings
+from dea_array_twin import (
+    ArrayConfig,
+    ConfigError,
+    ConvergenceError,
+    NewtonSettings,
+)
 from dea_array_twin.material import EPS0
 
 FREE_CENTRE = ("free", "driven", "free")

@@ -5,8 +5,12 @@ the reaction force is the energy derivative, the axial force is constant along t
 free membrane, and a separate 1D finite-element solution agrees."""
 
 import pytest
-from axisym_reference import (_selfcheck_energy, _selfcheck_fe_crosscheck, _selfcheck_flat_state,
-                              _selfcheck_force_constant)
+from axisym_reference import (
+    _selfcheck_energy,
+    _selfcheck_fe_crosscheck,
+    _selfcheck_flat_state,
+    _selfcheck_force_constant,
+)
 
 
 @pytest.mark.parametrize("prestretch", [1.1, 1.2])

@@ -4,9 +4,21 @@ import numpy as np
 import pytest
 
 from dea_array_twin import ArrayConfig
-from dea_array_twin.assembly import discretise, element_tangents, internal_forces, total_energy
-from dea_array_twin.material import (EPS0, Yeoh, energy_density, energy_derivatives, energy_gradient,
-                                     equibiaxial_cauchy_stress, principal_cauchy_stresses)
+from dea_array_twin.assembly import (
+    discretise,
+    element_tangents,
+    internal_forces,
+    total_energy,
+)
+from dea_array_twin.material import (
+    EPS0,
+    Yeoh,
+    energy_density,
+    energy_derivatives,
+    energy_gradient,
+    equibiaxial_cauchy_stress,
+    principal_cauchy_stresses,
+)
 from dea_array_twin.mesh import build_mesh
 from dea_array_twin.model import MembraneModel
 

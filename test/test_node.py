@@ -1,7 +1,6 @@
 """The twin node over real DDS, each test on its own ROS domain (see dea_array_twin.testing)."""
 
 import math
-import signal
 import subprocess
 import sys
 import time
