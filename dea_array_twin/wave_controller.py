@@ -14,8 +14,8 @@ for unit k+1.  :class:`Wave` is the rule, with no ROS in it::
    ``C[k+1] / C0[k+1] - 1`` is watched.  When it is at least ``trigger_fraction``
    *and* unit k has reached ``amplitude``, unit k+1 ramps up while unit k ramps back
    to 0 (both in ``ramp_time``).
-4. After the last unit reached ``amplitude`` a cycle is complete: the last unit
-   ramps back to 0, then the next cycle starts from unit 1 as in step 2 (there is
+4. After the last unit reached ``amplitude`` and stayed there for ``settle_time`` (it
+   has no neighbour to wait for) a cycle is complete: the last unit ramps back to 0, then the next cycle starts from unit 1 as in step 2 (there is
    no neighbour after the last unit, so this step has no capacitance trigger), or
    the wave ends after ``cycles`` cycles (0: never).
 
@@ -222,14 +222,16 @@ class Wave:
 
     def _rise_step(self, t: float, cap: np.ndarray) -> None:
         k = self.unit
-        if k + 1 == self.n_units:  # the last unit is up: cycle complete
+        if self.waiting_since is None:
+            self.waiting_since = t
+        if k + 1 == self.n_units:  # the last unit is up: hold it, then the cycle is complete
+            if t - self.waiting_since < self.settings.settle_time:
+                return
             self.cycle += 1
             self.phase, self.waiting_since = RETURN, None
             self.ramps[k].go_to(t, 0.0)
             self._events.append(WaveEvent(t, "cycle", k, self.cycle))
             return
-        if self.waiting_since is None:
-            self.waiting_since = t
         rise = self.rise(k + 1, cap)
         if rise >= self.settings.trigger_fraction:
             self.ramps[k].go_to(t, 0.0)

@@ -144,6 +144,7 @@ def test_wave_controller_deflects_twin_units_one_after_another_by_capacitance_tr
                         reached.append((unit, states[i], i))
                 seen = len(states)
                 time.sleep(0.05)
+            assert h.spin_error is None, h.spin_error
             assert [u for u, _, _ in reached] == [0, 1, 2], f"units reached 0.9 A: {reached}"
             for unit, msg, _ in reached:
                 assert msg.effort[unit] > 0.0, f"unit {unit + 1} deflected without restoring force: {msg}"
