@@ -66,7 +66,8 @@ def command_error(kind: str, values: Sequence[float], cfg: ArrayConfig) -> str |
     return None
 
 
-def _array(values: np.ndarray) -> Float64MultiArray:
+def unit_array(values: Sequence[float]) -> Float64MultiArray:
+    """A Float64MultiArray with one value per unit (layout dim labelled "unit")."""
     msg = Float64MultiArray()
     msg.layout.dim = [MultiArrayDimension(label="unit", size=len(values), stride=len(values))]
     msg.data = [float(v) for v in values]
@@ -280,8 +281,8 @@ class TwinNode(Node):
         if res is None:
             return
         stamp = self.get_clock().now().to_msg()
-        self.pub_force.publish(_array(res.force))
-        self.pub_cap.publish(_array(res.capacitance))
+        self.pub_force.publish(unit_array(res.force))
+        self.pub_cap.publish(unit_array(res.capacitance))
         states = JointState()
         states.header.stamp = stamp
         states.header.frame_id = self.frame_id

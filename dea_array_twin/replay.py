@@ -746,14 +746,6 @@ def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.nda
 
 # ------------------------------------------------------------------- outputs
 
-def _float_array(values: np.ndarray):
-    from std_msgs.msg import Float64MultiArray, MultiArrayDimension
-
-    msg = Float64MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label="unit", size=len(values), stride=len(values))]
-    msg.data = [float(v) for v in values]
-    return msg
-
 
 def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]], frame_id: str = "dea_array") -> None:
     """Write the replay as a ROS 2 MCAP bag (see the module docstring for the topics).
@@ -764,6 +756,7 @@ def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]], 
     from sensor_msgs.msg import JointState
 
     from .mcap_writer import Ros2McapWriter
+    from .node import unit_array
 
     n = run.force.shape[1]
     names = [f"unit_{k + 1}" for k in range(n)]
@@ -774,9 +767,9 @@ def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]], 
         for i, t in enumerate(run.times_ns.tolist()):
             kind = run.kinds[i]
             held = run.displacement[i] if kind == "displacement" else run.voltage[i]
-            rec.write(ids[kind], serialize_message(_float_array(held)), t)
-            rec.write(ids["force"], serialize_message(_float_array(run.force[i])), t)
-            rec.write(ids["capacitance"], serialize_message(_float_array(run.capacitance[i])), t)
+            rec.write(ids[kind], serialize_message(unit_array(held)), t)
+            rec.write(ids["force"], serialize_message(unit_array(run.force[i])), t)
+            rec.write(ids["capacitance"], serialize_message(unit_array(run.capacitance[i])), t)
             states = JointState(name=names, position=[float(v) for v in run.centre_deflection[i]],
                                 velocity=[0.0] * n, effort=[float(v) for v in run.force[i]])
             states.header.stamp.sec, states.header.stamp.nanosec = divmod(t, 1_000_000_000)

@@ -125,7 +125,10 @@ class TwinHarness:
             # Matched on our (writer) side; the twin's best-effort reader matches at about
             # the same time: give it a moment, since a best-effort sample sent before
             # that is dropped.
-            if (all(pub.get_subscription_count() >= 1 for pub in self._pubs.values())
+            # Every command subscription the graph shows (the twin's own and, when it
+            # records, its recorder's) must be matched, not just one of them.
+            if (all(pub.get_subscription_count() >= max(1, self.node.count_subscribers(pub.topic_name))
+                    for pub in self._pubs.values())
                     and self.node.count_publishers(self.topic("force")) >= 1):
                 time.sleep(0.2)
                 return

@@ -40,7 +40,7 @@ import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray
 
 __all__ = ["Wave", "WaveSettings", "WaveEvent", "WaveController", "main"]
 
@@ -49,6 +49,7 @@ INPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 
 SETTLE, RISE, RETURN, DONE = "settle", "rise", "return", "done"
 
+from .node import unit_array
 from .rosmain import spin_node
 
 
@@ -238,13 +239,6 @@ class Wave:
             self._start_unit(t, k + 1, "triggered", rise)
 
 
-def _array(values: np.ndarray) -> Float64MultiArray:
-    msg = Float64MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label="unit", size=len(values), stride=len(values))]
-    msg.data = [float(v) for v in values]
-    return msg
-
-
 class WaveController(Node):
     """ROS 2 node running a :class:`Wave` against the twin's ``capacitance`` output.
 
@@ -300,7 +294,7 @@ class WaveController(Node):
             return
         t = self._now()
         command = wave.update(t, self.capacitance)
-        self.pub.publish(_array(command))
+        self.pub.publish(unit_array(command))
         for event in wave.pop_events():
             self.get_logger().info(event.describe())
         if wave.waiting_since is not None and t - wave.waiting_since > max(self.settings.ramp_time, 1.0):
