@@ -131,11 +131,6 @@ class ArrayConfig:
         """Side of the square electrode of the same area as the circle [m, scaled]."""
         return math.sqrt(math.pi) * 0.5 * self.electrode_diameter * self.scale
 
-    @property
-    def electrode_area(self) -> float:
-        """Reference area of one electrode [m^2, scaled]."""
-        return math.pi * (0.5 * self.scaled("electrode_diameter")) ** 2
-
     def hv_voltage(self, critical_field: float = 80e6) -> float:
         """Paper eq. 14: ``V = Ec t0 / lp^2`` [V], flat-state field = ``critical_field``."""
         return critical_field * self.thickness / self.prestretch**2

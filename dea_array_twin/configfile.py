@@ -1,4 +1,4 @@
-"""Reading and writing :class:`~.config.ArrayConfig` as YAML files."""
+"""Reading :class:`~.config.ArrayConfig` from YAML files."""
 
 from __future__ import annotations
 
@@ -34,7 +34,3 @@ def load_config(path: str | Path | None) -> ArrayConfig:
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
 
-
-def dump_config(cfg: ArrayConfig) -> str:
-    """The config as YAML text (every field, SI units)."""
-    return yaml.safe_dump(cfg.to_dict(), sort_keys=False)

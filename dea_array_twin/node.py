@@ -198,9 +198,9 @@ class TwinNode(Node):
             return
         from .mcap_writer import RecordingError
         from .recorder import TopicRecorder
+        from .replay import metadata_from_config
 
-        metadata = {k: str(v) for k, v in self.twin.config.to_dict().items()}
-        metadata.update(unit_modes="[" + ", ".join(self.modes) + "]", update_rate=str(self.update_rate))
+        metadata = metadata_from_config(self.twin.config, self.modes, self.update_rate)
         try:
             self.recorder = TopicRecorder(self, directory, metadata, self._on_recording_error,
                                           split_size=split_size, split_duration=split_duration)

@@ -146,8 +146,9 @@ class ArrayTwin:
     def _vector(self, name: str, values: Sequence[float] | float | None, default: np.ndarray) -> np.ndarray:
         if values is None:
             return default.copy()
-        arr = np.broadcast_to(np.asarray(values, dtype=float), (self.n_units,)).copy() if np.ndim(values) == 0 \
-            else np.asarray(values, dtype=float)
+        arr = np.asarray(values, dtype=float)
+        if arr.ndim == 0:  # one value for every unit
+            arr = np.full(self.n_units, float(arr))
         if arr.shape != (self.n_units,):
             raise ValueError(f"{name} must have one value per unit ({self.n_units}), got shape {arr.shape}")
         if not np.all(np.isfinite(arr)):

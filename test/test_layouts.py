@@ -48,3 +48,13 @@ def test_linear_elements_converge_to_the_quadratic_result():
                                 mesh_size_indenter=0.3e-3)).solve([0.010], [0.0])
     assert lin.force[0] == pytest.approx(quad.force[0], rel=5e-3)
     assert lin.capacitance[0] == pytest.approx(quad.capacitance[0], rel=5e-3)
+
+
+def test_paper_hv_voltage_gives_the_critical_flat_field():
+    """Eq. 14: V = Ec t0 / lp^2, so the true flat-state field V lp^2 / t0 equals Ec = 80 V/um."""
+    for lp in (1.1, 1.2, 1.8):
+        cfg = ArrayConfig(prestretch=lp)
+        v = cfg.hv_voltage()
+        assert v == pytest.approx(80e6 * 50e-6 / lp**2)
+        assert v * lp**2 / cfg.thickness == pytest.approx(80e6)
+    assert ArrayConfig().hv_voltage() == pytest.approx(3305.785, rel=1e-6)
