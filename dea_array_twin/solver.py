@@ -57,6 +57,12 @@ class NewtonSettings:
         Required residual reduction factor per modified-Newton iteration.
     check_stability : bool
         Factor the tangent at the converged state and report its inertia.
+    unstable_step : float
+        A load step longer than this fraction of the path that converges to a
+        state whose tangent is not positive definite, starting from a stable one, is
+        retried in halves: a long step can land on a spurious (saddle) branch, e.g.
+        two indenters pulled 8 mm out of the flat membrane at once.  Shorter steps
+        are accepted and their state reported unstable.
     """
 
     residual_tol: float = 1e-8
@@ -66,6 +72,7 @@ class NewtonSettings:
     modified_newton: bool = True
     contraction: float = 0.5
     check_stability: bool = True
+    unstable_step: float = 1.0 / 32.0
 
 
 @dataclass
@@ -224,6 +231,7 @@ class EquilibriumSolver:
         fact = self.factorisation
         if fact is not None and not np.array_equal(fact.free, free):
             fact = None
+        start_stable = self.factorisation is None or self.factorisation.negative_pivots == 0
         done, step, cuts = 0.0, 1.0, 0
         while done < 1.0:
             t = min(1.0, done + step)
@@ -247,16 +255,21 @@ class EquilibriumSolver:
                 fact = self.factorisation if (self.factorisation is not None
                                               and np.array_equal(self.factorisation.free, free)) else None
                 continue
-            x, r, point, fact_used = outcome
-            done = t
+            x_new, r, point, fact_used = outcome
+            if t < 1.0 or check or fact_used is None:
+                _, ke = element_tangents(m.disc, x_new, m.yeoh, m.maxwell(v0 + t * (v1 - v0)), m.thickness)
+                fact_new = factorise(m, ke, free, prescribed)
+                stats.factorisations += 1
+                if start_stable and fact_new.negative_pivots > 0 and t - done > s.unstable_step:
+                    cuts += 1  # a long step onto an unstable state: retry it in halves
+                    stats.step_cuts = cuts
+                    step = 0.5 * (t - done)
+                    continue
+            else:
+                fact_new = fact_used
+            x, fact, done = x_new, fact_new, t
             stats.steps += 1
             step = min(2.0 * step, 1.0)
-            if done < 1.0 or check or fact_used is None:
-                _, ke = element_tangents(m.disc, x, m.yeoh, m.maxwell(v0 + t * (v1 - v0)), m.thickness)
-                fact = factorise(m, ke, free, prescribed)
-                stats.factorisations += 1
-            else:
-                fact = fact_used
             self.factorisation = fact
         stats.stability_checked = check
         return x, r, point, stats
