@@ -70,6 +70,7 @@ setup(
         'test': ['pytest'],
         'mcap': ['mcap>=1.5', 'mcap-ros2-support', 'rosbags'],
         'plot': ['matplotlib'],
+        'cluster': ['dask[distributed]>=2024.1'],
     },
     zip_safe=True,
     maintainer='dea_array_twin developers',
