@@ -12,6 +12,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from .material import EPS0, Yeoh
 
 LAYOUTS = ("array", "circular")
@@ -72,6 +74,14 @@ class ArrayConfig:
         Element size on the electrode edges [m, before scaling].
     max_displacement : float
         Largest |d_k| [m, before scaling] a command may ask for.
+    slip_displacement, slip_factor : tuple of float
+        Optional slip correction of the frame (paper eq. 11), a table of the factor
+        gamma [-] against the indenter displacement [m, before scaling; scaled like
+        every length, as ``max_displacement`` is, so a table carries over to a
+        scaled array at the same relative deflection].  Piecewise linear between
+        the entries, constant beyond the ends; displacements strictly increasing
+        and >= 0; factors in (0, 1].  Empty (the default) = no slip, gamma = 1.
+        See :meth:`slip` and :meth:`.model.MembraneModel.edge_stretch`.
     """
 
     layout: str = "array"
@@ -97,8 +107,12 @@ class ArrayConfig:
     mesh_size_indenter: float = 1.25e-3
     mesh_size_electrode: float = 2.5e-3
     max_displacement: float = 0.030
+    slip_displacement: tuple[float, ...] = ()
+    slip_factor: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
+        for name in ("slip_displacement", "slip_factor"):  # accept any sequence of numbers
+            object.__setattr__(self, name, _coerce(name, getattr(self, name), tuple))
         validate(self)
 
     # ---- derived quantities -------------------------------------------------------
@@ -135,13 +149,33 @@ class ArrayConfig:
         """Paper eq. 14: ``V = Ec t0 / lp^2`` [V], flat-state field = ``critical_field``."""
         return critical_field * self.thickness / self.prestretch**2
 
+    def slip(self, displacement: float) -> float:
+        """Slip factor gamma(d) of eq. 11.
+
+        Parameters
+        ----------
+        displacement : float
+            Indenter displacement d [m, scaled, as commanded].
+
+        Returns
+        -------
+        float
+            gamma [-]: linear interpolation of the ``slip_factor`` table over
+            ``slip_displacement * scale``, constant beyond its ends; 1.0 without a
+            table.
+        """
+        if not self.slip_factor:
+            return 1.0
+        knots = np.asarray(self.slip_displacement) * self.scale
+        return float(np.interp(displacement, knots, self.slip_factor))
+
     def replace(self, **changes: Any) -> "ArrayConfig":
         """A copy with ``changes`` applied (validated)."""
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain dict of every field (for YAML, ROS parameters, MCAP metadata)."""
-        return dataclasses.asdict(self)
+        """Plain dict of every field (for YAML, ROS parameters, MCAP metadata); tables as lists."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "ArrayConfig":
@@ -158,7 +192,15 @@ class ArrayConfig:
 
 
 def _coerce(name: str, value: Any, kind: type) -> Any:
-    """Convert a YAML/ROS value to the field's type or say which field is wrong."""
+    """Convert a YAML/ROS value to the field's type or say which field is wrong.
+
+    Table fields (tuples) take any sequence of numbers (a YAML list, a ROS double
+    array) and become tuples of float.
+    """
+    if kind is tuple:
+        if isinstance(value, (str, bytes, dict)) or not hasattr(value, "__iter__"):
+            raise ConfigError(f"{name}: expected a list of numbers, got {value!r}")
+        return tuple(_coerce(f"{name}[{i}]", v, float) for i, v in enumerate(value))
     if kind is bool or isinstance(value, bool):
         raise ConfigError(f"{name}: expected a {kind.__name__}, got {value!r}")
     try:
@@ -200,6 +242,7 @@ def validate(cfg: ArrayConfig) -> None:
     _require(math.isfinite(cfg.c20) and math.isfinite(cfg.c30), "c20/c30", "must be finite")
     _require(1.0 < cfg.prestretch <= 5.0, "prestretch",
              f"must be in (1, 5]: a membrane at lp <= 1 is slack, got {cfg.prestretch}")
+    _validate_slip(cfg)
     _require(cfg.element_order in (1, 2), "element_order", f"must be 1 or 2, got {cfg.element_order}")
     for name in ("mesh_size_indenter", "mesh_size_electrode"):
         _require(getattr(cfg, name) <= cfg.mesh_size, name,
@@ -220,3 +263,21 @@ def validate(cfg: ArrayConfig) -> None:
         extent = (count - 1) * pitch + cfg.electrode_diameter
         _require(extent < size, name,
                  f"{count} electrode(s) span {extent} m, which does not fit inside the frame ({size} m)")
+
+
+def _validate_slip(cfg: ArrayConfig) -> None:
+    """Check the eq. 11 table: equal lengths, displacements increasing, factors in (0, 1].
+
+    Factors are capped at 1 because slip only lets the membrane creep inwards from
+    the clamp (eq. 11 reduces the pre-stretch); above 0 so that the frame's X
+    stretch ``1 + (lp - 1) gamma`` stays > 1 and the membrane taut at the frame.
+    """
+    disp, factor = cfg.slip_displacement, cfg.slip_factor
+    _require(len(disp) == len(factor), "slip_factor",
+             f"needs one factor per slip_displacement entry ({len(disp)}), got {len(factor)}")
+    _require(all(math.isfinite(v) and v >= 0 for v in disp), "slip_displacement",
+             f"must be finite and >= 0 m, got {list(disp)}")
+    _require(all(b > a for a, b in zip(disp, disp[1:])), "slip_displacement",
+             f"must be strictly increasing, got {list(disp)}")
+    _require(all(math.isfinite(v) and 0 < v <= 1 for v in factor), "slip_factor",
+             f"must be in (0, 1] (slip only reduces the frame's pre-stretch), got {list(factor)}")

@@ -4,7 +4,8 @@ A :class:`MembraneModel` binds a configuration to its mesh and quadrature data a
 answers the questions the solver asks: which dofs are prescribed for a set of unit
 modes, their values for given indenter displacements (eqs. 8 and 9), the Maxwell
 coefficient of every element for given voltages (eq. 5), and the outputs of a state
-(eqs. 7 and 10).
+(eqs. 7 and 10).  The optional slip correction of the frame (eq. 11) enters through
+:meth:`MembraneModel.edge_stretch`.
 """
 
 from __future__ import annotations
@@ -56,7 +57,9 @@ class MembraneModel:
                                for k in range(cfg.n_units)]
         #: Reference area [m^2] of each unit's meshed electrode.
         self.electrode_area = np.array([self.disc.weight[e].sum() for e in self._unit_elements])
-        #: Capacitance [F] of each unit in the flat pre-stretched state (det C = lp^4).
+        #: Capacitance [F] of each unit in the flat pre-stretched state (det C = lp^4),
+        #: the reference of ``delta_capacitance``; without slip (gamma = 1) even when
+        #: a slip table is configured.
         self.flat_capacitance = cfg.permittivity / cfg.thickness * cfg.prestretch**4 * self.electrode_area
         #: Force scale [N] for convergence tests: t0 * c10 * D.
         self.force_scale = cfg.thickness * cfg.c10 * cfg.scaled("electrode_diameter")
@@ -94,17 +97,50 @@ class MembraneModel:
         mask[dofs] = False
         return dofs, np.flatnonzero(mask)
 
-    def apply_prescribed(self, x: np.ndarray, modes: Sequence[str], displacement: np.ndarray) -> None:
-        """Set the prescribed positions in ``x`` in place (eqs. 8, 9).
+    def edge_stretch(self, modes: Sequence[str], displacement: np.ndarray) -> float:
+        """Stretch of the frame along X [-]: ``lp``, or ``1 + (lp - 1) gamma`` with slip (eq. 11).
 
-        Frame nodes sit at ``(lp X, lp Y, 0)``; the disk of a driven unit k at
-        ``(lp X, lp Y, d_k)``.
+        Eq. 11 scales the X pre-stretch displacement on the outer edge by
+        ``gamma(d_k)``, the configured table (:meth:`.ArrayConfig.slip`).  The paper
+        only ever moves one unit; with several, gamma is taken at the largest
+        ``|d_k|`` over the driven units (0 when none is driven): the frame slips as
+        far as the deepest indentation pulls it, and a downward indentation pulls
+        as much as the mirror upward one.  Without a table this is exactly ``lp``.
+
+        Parameters
+        ----------
+        modes : sequence of str
+            ``"driven"`` or ``"free"`` per unit.
+        displacement : ndarray, shape (n_units,)
+            Indenter displacements d_k [m] (free units ignored).
+        """
+        cfg = self.cfg
+        if not cfg.slip_factor:
+            return cfg.prestretch
+        depth = max((abs(float(d)) for d, m in zip(displacement, modes) if m == DRIVEN), default=0.0)
+        return 1.0 + (cfg.prestretch - 1.0) * cfg.slip(depth)
+
+    def frame_positions(self, modes: Sequence[str], displacement: np.ndarray) -> np.ndarray:
+        """Prescribed positions ``(lx X, lp Y, 0)`` of the frame nodes [m], shape (n_frame, 3).
+
+        ``lx`` is :meth:`edge_stretch`: ``lp`` (eq. 8) or reduced by slip (eq. 11).
+        """
+        frame = self.mesh.frame_nodes
+        out = np.zeros((frame.size, 3))
+        out[:, :2] = np.array([self.edge_stretch(modes, displacement), self.cfg.prestretch]) * self.mesh.nodes[frame]
+        return out
+
+    def apply_prescribed(self, x: np.ndarray, modes: Sequence[str], displacement: np.ndarray) -> None:
+        """Set the prescribed positions in ``x`` in place (eqs. 8, 9, 11).
+
+        Frame nodes sit at :meth:`frame_positions`, ``(lx X, lp Y, 0)`` with ``lx``
+        = :meth:`edge_stretch` (``lp`` without slip, eq. 8; X, Y from the membrane
+        centre, where both layouts put the origin); the disk of a driven unit k at
+        ``(lp X, lp Y, d_k)`` (eq. 9, no slip).
         """
         lp = self.cfg.prestretch
         xs = x.reshape(-1, 3)
-        frame = self.mesh.frame_nodes
-        xs[frame, :2] = lp * self.mesh.nodes[frame]
-        xs[frame, 2] = 0.0
+        xs[self.mesh.frame_nodes] = self.frame_positions(modes, displacement)
         for k, mode in enumerate(modes):
             if mode == DRIVEN:
                 disk = self.mesh.indenter_nodes[k]

@@ -35,7 +35,7 @@ from visualization_msgs.msg import Marker
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .model import DRIVEN, MODES
-from .ros_params import RUNTIME_FIELDS, config_descriptor, config_fields
+from .ros_params import RUNTIME_FIELDS, config_descriptor, config_fields, declared_default
 from .rosmain import spin_node
 from .solver import ConvergenceError
 from .twin import ArrayTwin, TwinResult
@@ -155,7 +155,8 @@ class TwinNode(Node):
         base = load_config(path or None)
         values = {}
         for name, default in config_fields(base).items():
-            values[name] = self.declare_parameter(name, default, config_descriptor(name, default)).value
+            value = self.declare_parameter(name, declared_default(default), config_descriptor(name, default)).value
+            values[name] = default if value is None else value  # None: an unset (empty) table
         return ArrayConfig.from_dict(values)
 
     def _check_modes(self, modes: list) -> None:

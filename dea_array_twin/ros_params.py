@@ -2,14 +2,19 @@
 
 Geometry, material and mesh fields are read-only after start (changing them means a
 new mesh and a new model: restart the node).  Unit modes and the command limits can
-change at run time.
+change at run time.  The slip table (``slip_displacement``, ``slip_factor``) is a pair
+of read-only DOUBLE_ARRAY parameters, unset when the table is empty (rclpy would type
+an empty default as BYTE_ARRAY): ``-p slip_displacement:=[0.0,0.015] -p
+slip_factor:=[1.0,0.95]``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.parameter import Parameter
 
 from .config import ArrayConfig
 
@@ -21,6 +26,7 @@ _UNITS = {
     "indenter_radius": "m", "thickness": "m", "mesh_size": "m", "mesh_size_indenter": "m",
     "mesh_size_electrode": "m", "max_displacement": "m", "c10": "Pa", "c20": "Pa", "c30": "Pa",
     "breakdown_field": "V/m", "scale": "-", "epsr": "-", "prestretch": "-",
+    "slip_displacement": "m", "slip_factor": "-",
 }
 _RANGES = {"rows": (1, 64), "cols": (1, 64), "element_order": (1, 2)}
 
@@ -33,7 +39,9 @@ def config_descriptor(name: str, value: object) -> ParameterDescriptor:
     if name in _RANGES:
         lo, hi = _RANGES[name]
         desc.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
-    if isinstance(value, bool):
+    if isinstance(value, tuple):
+        desc.type = ParameterType.PARAMETER_DOUBLE_ARRAY
+    elif isinstance(value, bool):
         desc.type = ParameterType.PARAMETER_BOOL
     elif isinstance(value, int):
         desc.type = ParameterType.PARAMETER_INTEGER
@@ -43,6 +51,19 @@ def config_descriptor(name: str, value: object) -> ParameterDescriptor:
     else:
         desc.type = ParameterType.PARAMETER_STRING
     return desc
+
+
+def declared_default(value: object) -> Any:
+    """The default to declare a config field's parameter with (``declare_parameter``'s value).
+
+    A table becomes a list of float (a DOUBLE_ARRAY); an empty one the type
+    ``Parameter.Type.DOUBLE_ARRAY`` alone, which declares the parameter unset:
+    rclpy infers ``[]`` as BYTE_ARRAY, and a YAML or ``-p`` list of doubles would
+    then be rejected as the wrong type.  Unset reads back as None.
+    """
+    if isinstance(value, tuple):
+        return list(value) if value else Parameter.Type.DOUBLE_ARRAY
+    return value
 
 
 def config_fields(cfg: ArrayConfig) -> dict[str, object]:

@@ -7,8 +7,9 @@ Equilibrium is stationarity of the total energy ``E(x)`` over the free dofs
 reduce it.  The solver
 
 * moves from the current state to the target along a load path (indenter
-  displacements and voltages interpolated linearly), halving the step when Newton
-  fails and growing it again after successes;
+  displacements and voltages interpolated linearly, and a frame that is not yet
+  where the slip table of eq. 11 puts it moved there gradually), halving the step
+  when Newton fails and growing it again after successes;
 * predicts each step with the tangent of the last converged state
   (``x_f += -K_ff^-1 K_fp dx_p``), so small increments need one or two iterations;
 * may reuse the last factorisation for several iterations (modified Newton) and
@@ -96,6 +97,8 @@ class Factorisation:
         ``groups`` are index sets into the prescribed dofs that usually move together
         (the z dofs of one indenter disk).  A group moved rigidly costs no solve: its
         influence vector ``-K_ff^-1 K_fp 1_group`` is computed once per factorisation.
+        Any other change (the frame's X dofs moving with the slip factor of eq. 11)
+        costs one solve.
         """
         rest = dxp.copy()
         out = np.zeros(self.free.size)
@@ -228,6 +231,12 @@ class EquilibriumSolver:
         d0, d1 = np.asarray(start_displacement, float), np.asarray(displacement, float)
         v0, v1 = np.asarray(start_voltage, float), np.asarray(voltage, float)
         x = x.copy()
+        # With a slip table (eq. 11) the frame of ``x`` may not be where the path starts
+        # (after a reset to the gamma = 1 flat state, or when the driven units change):
+        # that lag is blended out along the path, so step cuts also shorten a frame jump.
+        # Without slip it is exactly zero.
+        frame = m.mesh.frame_nodes
+        lag = x.reshape(-1, 3)[frame] - m.frame_positions(modes, d0)
         fact = self.factorisation
         if fact is not None and not np.array_equal(fact.free, free):
             fact = None
@@ -237,6 +246,8 @@ class EquilibriumSolver:
             t = min(1.0, done + step)
             trial = x.copy()
             m.apply_prescribed(trial, modes, d0 + t * (d1 - d0))
+            if lag.any():
+                trial.reshape(-1, 3)[frame] += (1.0 - t) * lag
             if fact is not None:  # linear predictor from the last converged tangent
                 trial[free] += fact.predict(trial[prescribed] - x[prescribed], groups)
             outcome = self._newton(trial, free, prescribed, m.maxwell(v0 + t * (v1 - v0)), fact, stats)
