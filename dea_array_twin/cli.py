@@ -1,4 +1,4 @@
-"""Command line: ``dea-twin curve``, ``solve``, ``run``, ``demo``, ``replay``, ``plot`` and ``study``.
+"""Command line: ``dea-twin curve``, ``solve``, ``run``, ``demo``, ``replay``, ``plot``, ``study``, ``calibrate``.
 
 Thin layer over :class:`~.twin.ArrayTwin`: parses arguments, runs the solves, prints
 a labelled table (mm, N, pF) or JSON in SI units.  Exit codes: 0 ok, 1 the solver
@@ -66,11 +66,14 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the twin node plus the example wave controller, printing what they do")
     demo.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
     demo.add_argument("--duration", type=float, default=20.0, help="seconds to run (default 20; 0 = until Ctrl-C)")
-    from . import plot, replay, study_cli
+    from . import calibration_cli, plot, replay, study_cli
 
     study_cli.add_arguments(sub.add_parser(
         "study", help="the paper's studies: coupled curves, coupling indices (eqs. 13-16) and the five "
                       "parameter sweeps of section 6, as CSV + PNG, in parallel locally or on Dask"))
+    calibration_cli.add_arguments(sub.add_parser(
+        "calibrate", help="fit the Yeoh coefficients (Nelder-Mead, as the paper) to measured force curves "
+                          "from CSV or MCAP; FIT per curve and a PNG overlay"))
     replay.add_arguments(sub.add_parser(
         "replay", help="re-run the twin on a recorded bag's commands (MCAP + CSV out, FIT against recorded "
                        "outputs), or republish them with --realtime"))
@@ -172,10 +175,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from .bag_recover import main as recover_main
 
         return recover_main([args.src, args.dst])
-    if args.command in ("replay", "plot", "study"):
-        from . import plot, replay, study_cli
+    if args.command in ("replay", "plot", "study", "calibrate"):
+        from . import calibration_cli, plot, replay, study_cli
 
-        module = {"replay": replay, "plot": plot, "study": study_cli}[args.command]
+        module = {"replay": replay, "plot": plot, "study": study_cli, "calibrate": calibration_cli}[args.command]
         return module.run_from_args(args)
     try:
         twin = ArrayTwin(load_config(args.config))

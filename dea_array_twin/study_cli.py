@@ -17,6 +17,7 @@ import argparse
 import csv
 import math
 import sys
+import time
 from pathlib import Path
 from typing import Sequence
 
@@ -92,9 +93,13 @@ def _run(tasks: list[CurveTask], args: argparse.Namespace, label: str) -> list[C
     from tqdm import tqdm
 
     where = f"Dask at {args.scheduler}" if args.scheduler else f"{args.workers} worker(s)"
+    tic = time.perf_counter()
     with tqdm(total=len(tasks), desc=f"{label} ({where})", unit="curve", file=sys.stderr, disable=None) as bar:
-        return run_tasks(study.try_curve, tasks, workers=args.workers, scheduler=args.scheduler,
-                         progress=lambda done: bar.update(done - bar.n))
+        results = run_tasks(study.try_curve, tasks, workers=args.workers, scheduler=args.scheduler,
+                            progress=lambda done: bar.update(done - bar.n))
+    print(f"dea-twin study: {label}: {len(tasks)} curves in {time.perf_counter() - tic:.1f} s on {where}",
+          file=sys.stderr)
+    return results
 
 
 def curve_rows(results: Sequence[CurveResult | CurveFailure]) -> tuple[list[str], list[list]]:
