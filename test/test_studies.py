@@ -159,13 +159,18 @@ def test_local_processes_give_results_identical_to_a_serial_run():
     _assert_identical(serial, run_tasks(run_curve, tasks, workers=2))
 
 
-def test_a_dask_cluster_on_loopback_gives_results_identical_to_a_serial_run():
+def test_a_dask_cluster_on_loopback_gives_results_identical_to_a_serial_run(tmp_path, coarse_yaml):
     distributed = pytest.importorskip("distributed")
     tasks = _small_tasks()
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
         on_dask = run_tasks(run_curve, tasks, scheduler=cluster.scheduler_address)
+        assert _study(["coupling", str(coarse_yaml), "--steps", "2", "--scheduler", cluster.scheduler_address,
+                       "--out", str(tmp_path / "dask")]) == 0
     _assert_identical(run_tasks(run_curve, tasks), on_dask)
+    assert _study(["coupling", str(coarse_yaml), "--steps", "2", "--out", str(tmp_path / "here")]) == 0
+    for name in ("coupling.csv", "coupling_curves.csv"):  # the CLI's files are identical too
+        assert (tmp_path / "dask" / name).read_text() == (tmp_path / "here" / name).read_text()
 
 
 def test_an_unreachable_scheduler_is_a_clear_error():
@@ -237,3 +242,19 @@ def test_a_single_unit_layout_is_refused_for_coupling(tmp_path, capsys):
     path.write_text("layout: circular\n")
     assert _study(["coupling", str(path), "--out", str(tmp_path)]) == 2
     assert "at least two units" in capsys.readouterr().err
+
+
+def test_the_installed_command_runs_a_study_on_spawned_workers(tmp_path, coarse_yaml):
+    """``dea-twin study`` as users start it: spawned workers re-import the console script."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(sys.executable).parent / "dea-twin"
+    if not script.exists():
+        pytest.skip("dea-twin is not installed next to this interpreter (run tools/setup.sh)")
+    proc = subprocess.run([str(script), "study", "coupling", str(coarse_yaml), "--steps", "2", "--workers", "2",
+                           "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "coupling: 5 curves in" in proc.stderr and "| base |" in proc.stdout
+    assert (tmp_path / "out" / "coupling.png").exists()
