@@ -18,10 +18,25 @@ import numpy as np
 from .assembly import Discretisation, PointState, SparsePattern, discretise
 from .config import ArrayConfig
 from .material import energy_density, principal_cauchy_stresses
-from .mesh import Mesh, build_mesh
+from .mesh import Mesh, build_mesh, geometry_key
 
 DRIVEN, FREE = "driven", "free"
 MODES = (DRIVEN, FREE)
+
+#: Sparsity patterns per mesh geometry: they depend on the connectivity only (not on
+#: scale or material), and building one costs ~40 ms, so twins of one geometry with
+#: other materials or scales (calibration, studies) share it.
+_PATTERNS: dict[tuple, SparsePattern] = {}
+_PATTERNS_SIZE = 32
+
+
+def _pattern(cfg: ArrayConfig, disc: Discretisation) -> SparsePattern:
+    key = geometry_key(cfg)
+    if key not in _PATTERNS:
+        if len(_PATTERNS) >= _PATTERNS_SIZE:
+            _PATTERNS.pop(next(iter(_PATTERNS)))
+        _PATTERNS[key] = SparsePattern(disc.dofs, disc.n_dofs)
+    return _PATTERNS[key]
 
 
 @dataclass(frozen=True)
@@ -48,7 +63,7 @@ class MembraneModel:
         self.cfg = cfg
         self.mesh: Mesh = build_mesh(cfg)
         self.disc: Discretisation = discretise(self.mesh)
-        self.pattern = SparsePattern(self.disc.dofs, self.disc.n_dofs)
+        self.pattern = _pattern(cfg, self.disc)
         self.yeoh = cfg.yeoh
         self.thickness = cfg.thickness
         mesh = self.mesh

@@ -9,6 +9,7 @@ end of the stroke, where the force and the capacitance change are largest.
 import argparse
 import csv
 import functools
+import math
 
 import numpy as np
 import pytest
@@ -258,3 +259,17 @@ def test_the_installed_command_runs_a_study_on_spawned_workers(tmp_path, coarse_
     assert proc.returncode == 0, proc.stderr
     assert "coupling: 5 curves in" in proc.stderr and "| base |" in proc.stdout
     assert (tmp_path / "out" / "coupling.png").exists()
+
+
+def test_a_curve_without_equilibrium_is_recorded_and_the_study_exits_1(tmp_path, coarse_yaml, capsys):
+    # 10 kV on one unit is far beyond the electromechanical instability: no equilibrium.
+    tasks = coupling_tasks(_base(), 1)
+    tasks[2] = CurveTask(tasks[2].config, tasks[2].swept, None, 10e3, tasks[2].stroke, 1, tasks[2].key)
+    row = index_rows([try_curve(t) for t in tasks])[0]
+    assert math.isnan(row["eta_f_hv"]) and math.isnan(row["eta_c"])
+    assert row["error"].startswith("hv_default: Newton failed to converge")
+    assert _study(["curves", str(coarse_yaml), "--neighbours", "free", "--voltages", "10000", "--steps", "1",
+                   "--to", "0.005", "--out", str(tmp_path)]) == 1
+    assert "some curves failed to solve" in capsys.readouterr().err
+    with open(tmp_path / "curves.csv") as f:
+        assert all("failed to converge" in r["error"] for r in csv.DictReader(f))
