@@ -64,6 +64,11 @@ class NewtonSettings:
         retried in halves: a long step can land on a spurious (saddle) branch, e.g.
         two indenters pulled 8 mm out of the flat membrane at once.  Shorter steps
         are accepted and their state reported unstable.
+    long_jump : float
+        A solve whose indenter displacements change by more than this fraction of
+        D is checked for stability (and so retried as above) even when
+        ``check_stability`` is off: a jump is where a spurious branch is likely,
+        and one factorisation is cheap next to its load steps.
     """
 
     residual_tol: float = 1e-8
@@ -74,6 +79,7 @@ class NewtonSettings:
     contraction: float = 0.5
     check_stability: bool = True
     unstable_step: float = 1.0 / 32.0
+    long_jump: float = 0.1
 
 
 @dataclass
@@ -224,11 +230,12 @@ class EquilibriumSolver:
         """
         m, s = self.model, self.settings
         check = s.check_stability if check_stability is None else check_stability
+        d0, d1 = np.asarray(start_displacement, float), np.asarray(displacement, float)
+        check = check or bool(np.abs(d1 - d0).max(initial=0.0) > s.long_jump * m.length_scale)
         prescribed, free = m.prescribed_dofs(modes)
         groups = [np.flatnonzero(np.isin(prescribed, 3 * m.mesh.indenter_nodes[k] + 2))
                   for k, mode in enumerate(modes) if mode == DRIVEN]
         stats = SolveStats()
-        d0, d1 = np.asarray(start_displacement, float), np.asarray(displacement, float)
         v0, v1 = np.asarray(start_voltage, float), np.asarray(voltage, float)
         x = x.copy()
         # With a slip table (eq. 11) the frame of ``x`` may not be where the path starts
