@@ -31,13 +31,14 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from .bag import BagError
 from .calibration import PARAMETERS, POORLY_DETERMINED, YeohFit, fit_yeoh
 from .calibration_data import DEFAULT_SETTLE, DataError, load_curves
 from .config import ConfigError
 from .measured import MeasuredCurve, simulate
-from .replay import BagError, parse_topic_map
 from .slip import SlipFit, fit_slip
 from .solver import ConvergenceError
+from .topics import parse_topic_map
 from .twin import ArrayTwin
 
 __all__ = ["add_arguments", "run_from_args"]

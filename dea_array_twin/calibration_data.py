@@ -18,11 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .bag import Bag
+from .bag_config import resolve_config
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .measured import MeasuredCurve
 from .model import DRIVEN, FREE, MODES
-from .replay import Bag, csv_header, resolve_config
+from .replay import csv_header
 
 __all__ = ["DataError", "load_curves", "read_bag", "read_csv"]
 

@@ -197,9 +197,9 @@ class TwinNode(Node):
                                       "start a new file after this many seconds; 0 = never")
         if not record:
             return
+        from .bag_config import metadata_from_config
         from .mcap_writer import RecordingError
         from .recorder import TopicRecorder
-        from .replay import metadata_from_config
 
         metadata = metadata_from_config(self.twin.config, self.modes, self.update_rate)
         try:

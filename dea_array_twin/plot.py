@@ -2,7 +2,7 @@
 
 Three stacked axes over time, one colour per unit: the commands (displacement [mm],
 solid, left scale; voltage [V], dashed, right scale; drawn as held values), the
-forces [N] and the capacitances [pF].  Reads any bag :class:`~.replay.Bag` opens: a
+forces [N] and the capacitances [pF].  Reads any bag :class:`~.bag.Bag` opens: a
 recording of the twin node, a rig's command bag (outputs then empty) or the MCAP
 written by ``dea-twin replay``.  Topics are chosen as ``replay`` chooses them
 (``--topic-map`` included).  Time runs from the bag's first message, or from the
@@ -24,15 +24,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .replay import (
-    COMMANDS,
-    REPLAY_METADATA,
-    Bag,
-    BagError,
-    output_topics,
-    parse_topic_map,
-    select_topic,
-)
+from .bag import Bag, BagError
+from .replay import REPLAY_METADATA
+from .topics import COMMANDS, output_topics, parse_topic_map, select_topic
 
 __all__ = ["Series", "add_arguments", "load_series", "plot_series", "run_from_args"]
 

@@ -4,7 +4,11 @@
 file or a rosbag2 directory of them), re-runs :class:`~.twin.ArrayTwin` on them as fast
 as it can and writes what the twin answers; ``dea-twin replay --realtime BAG`` instead
 republishes the recorded commands with their original timing, for a controller or a
-live twin in the loop without ``ros2 bag play``.
+live twin in the loop without ``ros2 bag play``.  This module holds the offline replay
+(:func:`replay_commands`, :func:`compare_outputs`, the MCAP and CSV outputs) and the
+command line; the bag is read by :class:`~.bag.Bag`, its topics chosen by
+:mod:`.topics`, its config by :func:`~.bag_config.resolve_config`, and ``--realtime``
+runs :func:`~.realtime_replay.realtime_replay`.
 
 Bag contract (what the twin's recorder writes; a rig recorded with ``ros2 bag record -s
 mcap`` has the command topics only):
@@ -40,9 +44,7 @@ before it; the zero command before the first one) and the paper's FIT (eq. 12, :
 is printed per unit and channel.  A recording of the live node at ``update_rate`` > 0
 lags its commands by up to one tick, which costs a little FIT on fast command changes.
 
-A file without a summary (the recorder was killed) is refused with a pointer to
-``python -m dea_array_twin.bag_recover``, not recovered silently: the recovered copy
-may lack the last chunk, and the user should know.
+A file without a summary (the recorder was killed) is refused (see :mod:`.bag`).
 
 Exit codes: 0 ok, 1 solver failure, 2 bad input (missing or non-MCAP file, truncated
 bag, no command topics, bad config), 130 interrupted (``--realtime``).
@@ -52,491 +54,38 @@ from __future__ import annotations
 
 import argparse
 import csv
-import heapq
 import math
-import struct
 import sys
 import time
 from collections import Counter
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator, NamedTuple, Sequence
 
 import numpy as np
-import yaml
 
-from .config import ArrayConfig, ConfigError
-from .configfile import load_config
+from .bag import Bag, BagError
+from .bag_config import metadata_from_config, resolve_config
+from .config import ConfigError
 from .mcap_writer import CONFIG_RECORD
 from .metrics import fit
-from .model import DRIVEN, MODES
+from .realtime_replay import realtime_replay
 from .solver import ConvergenceError
+from .topics import (
+    COMMANDS,
+    FLOAT_ARRAY,
+    OUTPUTS,
+    command_topics,
+    output_topics,
+    parse_topic_map,
+)
 from .twin import ArrayTwin
 
-__all__ = ["Bag", "BagError", "BagMessage", "ReplayRun", "compare_outputs", "fit", "parse_topic_map",
-           "realtime_replay", "replay_commands", "run_from_args", "select_topic"]
+__all__ = ["ReplayRun", "compare_outputs", "fit", "replay_commands", "run_from_args"]
 
 REPLAY_METADATA = "dea_array_twin_replay"
-NON_CONFIG_KEYS = ("unit_modes", "update_rate")
-FLOAT_ARRAY = "std_msgs/msg/Float64MultiArray"
 JOINT_STATE = "sensor_msgs/msg/JointState"
-COMMANDS = ("displacement", "voltage")
-OUTPUTS = ("force", "capacitance")
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 _MAX_LISTED_WARNINGS = 5
-
-
-class BagError(ValueError):
-    """The input is not a usable bag (missing, not MCAP, truncated, no command topics...)."""
-
-
-# ------------------------------------------------------------------------ bags
-
-class BagMessage(NamedTuple):
-    """One recorded message: topic, ``pkg/msg/Type``, log time [ns], CDR bytes, decoded (or None)."""
-
-    topic: str
-    type_name: str
-    log_time_ns: int
-    data: bytes
-    decoded: Any = None
-
-
-@dataclass
-class _FileInfo:
-    path: Path
-    topics: dict[str, str]
-    counts: dict[str, int]
-    start_ns: int | None
-    metadata: dict[str, dict[str, str]]
-
-
-def _normalise_type(name: str) -> str:
-    """``pkg/Type`` or ``pkg/msg/Type`` -> ``pkg/msg/Type``."""
-    parts = name.split("/")
-    return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
-
-
-def _mcap_modules():
-    try:
-        from mcap.exceptions import McapError
-        from mcap.reader import make_reader
-        from mcap_ros2.decoder import DecoderFactory
-    except ImportError as exc:  # pragma: no cover - depends on the install
-        raise BagError(f"reading bags needs the 'mcap' extra (pip install 'dea_array_twin[mcap]'): {exc}") from None
-    return McapError, make_reader, DecoderFactory
-
-
-def _damage_errors() -> tuple[type[BaseException], ...]:
-    McapError, _, _ = _mcap_modules()
-    return (McapError, struct.error, ValueError, EOFError, UnicodeDecodeError, KeyError, IndexError)
-
-
-def bag_files(path: str | Path) -> list[Path]:
-    """The ``.mcap`` files of a bag, in order.
-
-    Parameters
-    ----------
-    path
-        A ``.mcap`` file, or a rosbag2 directory (``metadata.yaml`` plus ``.mcap``
-        files, in the order of its ``relative_file_paths``), or a folder holding one
-        recording split by the twin's recorder (``X.mcap``, ``X_1.mcap``, ...).
-
-    Raises
-    ------
-    BagError
-        The path does not exist, or the directory holds no ``.mcap`` file or several
-        recordings.
-    """
-    path = Path(path)
-    if not path.exists():
-        raise BagError(f"{path}: no such file or directory")
-    if not path.is_dir():
-        return [path]
-    listed: list[Path] = []
-    meta = path / "metadata.yaml"
-    if meta.is_file():
-        try:
-            info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information", {})
-        except (OSError, yaml.YAMLError, AttributeError):
-            info = {}
-        storage = str(info.get("storage_identifier", "mcap") or "mcap")
-        if storage != "mcap":
-            raise BagError(f"{path} is a rosbag2 bag in '{storage}' storage; only MCAP is supported "
-                           f"(convert it with 'ros2 bag convert')")
-        listed = [path / p for p in info.get("relative_file_paths", []) or [] if str(p).endswith(".mcap")]
-        listed = [p for p in listed if p.is_file()]
-    if not listed:
-        listed = _one_series(path, sorted(path.glob("*.mcap")))
-    return listed
-
-
-def _one_series(folder: Path, files: list[Path]) -> list[Path]:
-    """The files of a folder without ``metadata.yaml``: one recording, ``X.mcap`` plus its splits ``X_<n>.mcap``.
-
-    Raises
-    ------
-    BagError
-        No file, or several recordings (say which, so the user can pick one).
-    """
-    if not files:
-        present = ", ".join(sorted(p.name for p in folder.iterdir())[:10]) or "nothing"
-        raise BagError(f"{folder} holds no .mcap file (found: {present})")
-    stems = {p.stem for p in files}
-    bases = [p for p in files if not any(p.stem.startswith(s + "_") and p.stem[len(s) + 1:].isdigit() for s in stems)]
-    if len(bases) != 1:
-        names = ", ".join(p.name for p in bases[:6]) + (", ..." if len(bases) > 6 else "")
-        raise BagError(f"{folder} holds {len(bases)} recordings ({names}) and no rosbag2 metadata.yaml; "
-                       f"pass one .mcap file")
-    base = bases[0].stem
-
-    def split_number(p: Path) -> int:
-        return 0 if p.stem == base else int(p.stem[len(base) + 1:])
-
-    return sorted(files, key=split_number)
-
-
-def _recover_hint(path: Path) -> str:
-    return (f"Copy its complete records into a readable file with:\n"
-            f"    python -m dea_array_twin.bag_recover {path} {path.with_name(path.stem + '_recovered.mcap')}")
-
-
-def _inspect(path: Path) -> _FileInfo:
-    """Check one file is a complete MCAP file and read its channels, counts and metadata."""
-    McapError, make_reader, _ = _mcap_modules()
-    damage = _damage_errors()
-    try:
-        size = path.stat().st_size
-        with open(path, "rb") as f:
-            head = f.read(len(MCAP_MAGIC))
-            f.seek(max(0, size - len(MCAP_MAGIC)))
-            tail = f.read(len(MCAP_MAGIC))
-    except OSError as exc:
-        raise BagError(f"cannot read {path}: {exc.strerror or exc}") from None
-    if head != MCAP_MAGIC:
-        raise BagError(f"{path} is not an MCAP file (it does not start with the MCAP magic bytes)")
-    if size < 2 * len(MCAP_MAGIC) or tail != MCAP_MAGIC:
-        raise BagError(f"{path} has no MCAP footer: the recording was cut off (recorder killed?). "
-                       + _recover_hint(path))
-    topics: dict[str, str] = {}
-    counts: Counter = Counter()
-    start_ns = None
-    metadata: dict[str, dict[str, str]] = {}
-    try:
-        with open(path, "rb") as f:
-            reader = make_reader(f)
-            summary = reader.get_summary()
-            if summary is not None:
-                for channel in summary.channels.values():
-                    schema = summary.schemas.get(channel.schema_id)
-                    topics[channel.topic] = _normalise_type(schema.name) if schema else ""
-            if summary is not None and summary.statistics is not None:
-                for cid, n in summary.statistics.channel_message_counts.items():
-                    if cid in summary.channels:
-                        counts[summary.channels[cid].topic] += n
-                if summary.statistics.message_count:
-                    start_ns = summary.statistics.message_start_time
-            else:  # complete but without summary or statistics: scan it once
-                for schema, channel, message in reader.iter_messages(log_time_order=False):
-                    topics[channel.topic] = _normalise_type(schema.name) if schema else ""
-                    counts[channel.topic] += 1
-                    start_ns = message.log_time if start_ns is None else min(start_ns, message.log_time)
-            for record in reader.iter_metadata():
-                metadata.setdefault(record.name, dict(record.metadata))
-    except damage as exc:
-        raise BagError(f"{path} is damaged ({type(exc).__name__}: {exc}). " + _recover_hint(path)) from None
-    return _FileInfo(path, topics, dict(counts), start_ns, metadata)
-
-
-class Bag:
-    """A recorded bag: one ``.mcap`` file or a rosbag2 directory of them.
-
-    Every file is checked on opening (MCAP magic at both ends, readable summary), so a
-    bag that opens can be read to the end.
-
-    Parameters
-    ----------
-    path
-        The ``.mcap`` file or the rosbag2 directory.
-
-    Raises
-    ------
-    BagError
-        Missing, not MCAP, truncated or damaged.
-
-    Attributes
-    ----------
-    path : Path
-    files : list of Path
-        The ``.mcap`` files, in order.
-    topics : dict
-        Topic name -> ``pkg/msg/Type`` over all files.
-    counts : dict
-        Topic name -> number of messages.
-    start_ns : int or None
-        Log time of the first message [ns].
-    """
-
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        self.files = bag_files(self.path)
-        self._infos = [_inspect(p) for p in self.files]
-        self.topics: dict[str, str] = {}
-        self.counts: Counter = Counter()
-        for info in self._infos:
-            for topic, type_name in info.topics.items():
-                self.topics.setdefault(topic, type_name)
-            self.counts.update(info.counts)
-        starts = [i.start_ns for i in self._infos if i.start_ns is not None]
-        self.start_ns: int | None = min(starts) if starts else None
-
-    def metadata(self, name: str) -> dict[str, str] | None:
-        """The first metadata record called ``name`` (``{key: value}``), or None."""
-        for info in self._infos:
-            if name in info.metadata:
-                return dict(info.metadata[name])
-        return None
-
-    def describe_topics(self) -> str:
-        """The topics present, one per line with type and message count."""
-        if not self.topics:
-            return "    (no topics)"
-        return "\n".join(f"    {t}  [{self.topics[t] or '?'}]  {self.counts.get(t, 0)} msgs"
-                         for t in sorted(self.topics))
-
-    def messages(self, topics: Iterable[str], decode: bool = False) -> Iterator[BagMessage]:
-        """The messages of ``topics`` over all files, in log-time order.
-
-        Parameters
-        ----------
-        topics
-            Topic names as recorded.
-        decode
-            Also decode each message (``mcap_ros2``: an object with the message's
-            fields as attributes) into :attr:`BagMessage.decoded`.
-
-        Raises
-        ------
-        BagError
-            A record or message cannot be read (damaged file).
-        """
-        topics = sorted(set(topics))
-        if not topics:
-            return iter(())
-        streams = [self._file_messages(info.path, topics, decode) for info in self._infos]
-        return heapq.merge(*streams, key=lambda m: m.log_time_ns) if len(streams) > 1 else streams[0]
-
-    def _file_messages(self, path: Path, topics: list[str], decode: bool) -> Iterator[BagMessage]:
-        _, make_reader, DecoderFactory = _mcap_modules()
-        damage = _damage_errors()
-        factory = DecoderFactory()  # decoders are cached by schema id: one factory per file
-        try:
-            with open(path, "rb") as f:
-                reader = make_reader(f)
-                for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
-                    type_name = _normalise_type(schema.name) if schema else ""
-                    decoded = None
-                    if decode:
-                        decoder = factory.decoder_for(channel.message_encoding, schema)
-                        if decoder is None:
-                            raise BagError(f"{path}: cannot decode {channel.topic} (encoding "
-                                           f"{channel.message_encoding!r}, schema {type_name or 'none'})")
-                        decoded = decoder(message.data)
-                    yield BagMessage(channel.topic, type_name, message.log_time, bytes(message.data), decoded)
-        except BagError:
-            raise
-        except OSError as exc:
-            raise BagError(f"cannot read {path}: {exc.strerror or exc}") from None
-        except damage as exc:
-            raise BagError(f"{path} is damaged ({type(exc).__name__}: {exc})") from None
-
-
-# -------------------------------------------------------------- topic selection
-
-def parse_topic_map(items: Sequence[str] | None) -> dict[str, str]:
-    """``["/rig/disp=command/displacement", ...]`` -> ``{"/rig/disp": "command/displacement"}``.
-
-    OLD is a topic as recorded (a leading ``/`` is added if missing); NEW is the name it
-    plays the role of (``command/displacement``, ``force``...) and, for ``--realtime``,
-    the name it is republished on.
-
-    Raises
-    ------
-    BagError
-        An item is not ``OLD=NEW``.
-    """
-    out: dict[str, str] = {}
-    for item in items or []:
-        old, sep, new = item.partition("=")
-        if not sep or not old.strip() or not new.strip():
-            raise BagError(f"--topic-map expects OLD=NEW (e.g. /rig/disp=command/displacement), got {item!r}")
-        old = old.strip()
-        out[old if old.startswith("/") else "/" + old] = new.strip()
-    return out
-
-
-def _plays(name: str, role: str) -> bool:
-    name = name.lstrip("/")
-    return name == role or name.endswith("/" + role)
-
-
-def select_topic(topics: dict[str, str], role: str, topic_map: dict[str, str] | None = None,
-                 namespace: str | None = None, type_name: str = FLOAT_ARRAY) -> str | None:
-    """The recorded topic that plays ``role`` (e.g. ``command/displacement``), or None.
-
-    Topics mapped to the role with ``--topic-map`` come first; otherwise any topic whose
-    name ends with the role (``/role`` or ``/ns/role``) and that is not mapped to something
-    else.  Among several, the one in ``namespace`` wins.
-
-    Raises
-    ------
-    BagError
-        Several candidates and no way to choose, or the topic has another type.
-    """
-    topic_map = topic_map or {}
-    candidates = [t for t, new in topic_map.items() if t in topics and _plays(new, role)]
-    if not candidates:
-        candidates = [t for t in topics if t not in topic_map and _plays(t, role)]
-    if len(candidates) > 1 and namespace is not None:
-        preferred = [t for t in candidates if t == f"{namespace}/{role}"]
-        candidates = preferred or candidates
-    if len(candidates) > 1:
-        raise BagError(f"several topics could be {role}: {', '.join(sorted(candidates))}; choose one with "
-                       f"--topic-map {sorted(candidates)[0]}={role}")
-    if not candidates:
-        return None
-    topic = candidates[0]
-    if topics[topic] and topics[topic] != type_name:
-        raise BagError(f"topic {topic} has type {topics[topic]}, expected {type_name} for {role}")
-    return topic
-
-
-def command_topics(bag: Bag, topic_map: dict[str, str] | None = None) -> dict[str, str]:
-    """``{"displacement": topic, "voltage": topic}`` for the command topics found (at least one).
-
-    Raises
-    ------
-    BagError
-        No command topic, listing the topics present.
-    """
-    found = {kind: select_topic(bag.topics, f"command/{kind}", topic_map) for kind in COMMANDS}
-    found = {k: t for k, t in found.items() if t is not None}
-    if not found:
-        raise BagError(f"{bag.path}: no command topics (names ending with command/displacement or "
-                       f"command/voltage; map others with --topic-map OLD=command/displacement). "
-                       f"Topics present:\n{bag.describe_topics()}")
-    return found
-
-
-def output_topics(bag: Bag, commands: dict[str, str], topic_map: dict[str, str] | None = None) -> dict[str, str]:
-    """Recorded ``force``/``capacitance`` topics, preferring the commands' namespace."""
-    namespace = None
-    for kind, topic in commands.items():
-        suffix = f"/command/{kind}"
-        if topic.endswith(suffix):
-            namespace = topic[: -len(suffix)]
-    found = {}
-    for kind in OUTPUTS:
-        try:
-            topic = select_topic(bag.topics, kind, topic_map, namespace)
-        except BagError as exc:
-            print(f"dea-twin: warning: ignoring recorded {kind}: {exc}", file=sys.stderr)
-            continue
-        if topic is not None:
-            found[kind] = topic
-    return found
-
-
-# ------------------------------------------------------------------- config
-
-def config_from_metadata(values: dict[str, str]) -> tuple[ArrayConfig, list[str] | None, list[str]]:
-    """The config and unit modes of a ``dea_array_twin_config`` metadata record.
-
-    Returns
-    -------
-    config : ArrayConfig
-    modes : list of str or None
-        ``unit_modes`` if recorded.
-    ignored : list of str
-        Keys that are neither config fields nor node parameters (skipped).
-
-    Raises
-    ------
-    ConfigError
-        A field is out of range or unparsable.
-    """
-    parsed = {}
-    for key, text in values.items():
-        try:
-            parsed[key] = yaml.safe_load(text)
-        except yaml.YAMLError:
-            parsed[key] = text
-    modes = parsed.pop("unit_modes", None)
-    for key in NON_CONFIG_KEYS:
-        parsed.pop(key, None)
-    known = set(ArrayConfig().to_dict())
-    ignored = sorted(set(parsed) - known)
-    cfg = ArrayConfig.from_dict({k: v for k, v in parsed.items() if k in known})
-    if modes is not None and not isinstance(modes, list):
-        raise ConfigError(f"unit_modes: expected a list like [driven, free], got {values.get('unit_modes')!r}")
-    return cfg, None if modes is None else [str(m) for m in modes], ignored
-
-
-def metadata_from_config(cfg: ArrayConfig, modes: Sequence[str], update_rate: float = 0.0) -> dict[str, str]:
-    """The ``dea_array_twin_config`` record for ``cfg`` (the inverse of :func:`config_from_metadata`)."""
-    out = {k: str(v) for k, v in cfg.to_dict().items()}
-    out["unit_modes"] = "[" + ", ".join(modes) + "]"
-    out["update_rate"] = str(float(update_rate))
-    return out
-
-
-def resolve_config(bag: Bag, config_path: str | None,
-                   modes: Sequence[str] | None) -> tuple[ArrayConfig, tuple[str, ...], list[str]]:
-    """Config and unit modes for a replay, and where each came from (notes for stderr).
-
-    Config: ``config_path``, else the bag's metadata, else the default.  Modes:
-    ``modes``, else the bag's metadata, else all driven.
-
-    Raises
-    ------
-    ConfigError
-        Bad config file, bad recorded config, or modes of the wrong length or value.
-    """
-    notes = []
-    recorded = bag.metadata(CONFIG_RECORD)
-    recorded_modes = None
-    if recorded is not None:
-        try:
-            recorded_cfg, recorded_modes, ignored = config_from_metadata(recorded)
-        except ConfigError as exc:
-            if config_path is None:
-                raise ConfigError(f"the config recorded in {bag.path} is invalid ({exc}); pass --config") from None
-            recorded_cfg, ignored = None, []
-    if config_path is not None:
-        cfg = load_config(config_path)
-        notes.append(f"config from {config_path}")
-    elif recorded is not None:
-        cfg = recorded_cfg
-        notes.append(f"config from the bag's '{CONFIG_RECORD}' metadata")
-        if ignored:
-            notes.append(f"warning: ignoring unknown recorded config keys {ignored} (another version of the twin?)")
-    else:
-        cfg = ArrayConfig()
-        notes.append("no config in the bag and no --config: using the default ArrayConfig (the paper's 1-by-3 array)")
-    n = cfg.n_units
-    if modes is not None:
-        source = "--modes"
-    elif recorded_modes is not None and len(recorded_modes) == n:
-        modes, source = recorded_modes, "the bag's metadata"
-    else:
-        if recorded_modes is not None:
-            notes.append(f"warning: recorded unit_modes {recorded_modes} do not fit {n} units; ignored")
-        modes, source = [DRIVEN] * n, "default (all driven)"
-    modes = tuple(modes)
-    if len(modes) != n or any(m not in MODES for m in modes):
-        raise ConfigError(f"unit modes must be {n} values out of {MODES}, got {list(modes)} (from {source})")
-    notes.append(f"unit modes {', '.join(modes)} from {source}")
-    return cfg, modes, notes
 
 
 # ------------------------------------------------------------- offline replay
@@ -855,95 +404,6 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
         fits = compare_outputs(run, data, int(round(fit_lag * 1e9)))
         print(_fit_table(fits, outputs, {k: len(v[0]) for k, v in data.items()}))
     return 0
-
-
-# ------------------------------------------------------------------ realtime
-
-def _message_class(type_name: str):
-    import importlib
-
-    package, _, name = _normalise_type(type_name).split("/")
-    try:
-        return getattr(importlib.import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError):
-        raise BagError(f"message type {type_name} is not installed (python package {package}.msg)") from None
-
-
-def realtime_replay(bag: Bag, topic_map: dict[str, str], rate: float = 1.0, wait: float = 2.0) -> int:
-    """``dea-twin replay --realtime``: republish the recorded commands with their timing scaled by 1/rate.
-
-    The raw CDR bytes go out on rclpy publishers (reliable, volatile, depth 10: reliable
-    and best-effort subscribers both connect) of the recorded type, on the mapped name
-    (``--topic-map``) or else the recorded name made relative, so they resolve the same
-    in the root namespace.  Uses the caller's ROS domain.  Waits up to ``wait`` seconds
-    for a subscriber on every topic first.
-
-    Returns
-    -------
-    int
-        0 after the last message, 130 on Ctrl-C.
-    """
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.duration import Duration
-    from rclpy.node import Node
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from rclpy.signals import SignalHandlerOptions
-    from tqdm import tqdm
-
-    if not (rate > 0 and math.isfinite(rate)):
-        raise BagError(f"--rate must be a number > 0, got {rate}")
-    commands = command_topics(bag, topic_map)
-    names = {topic: topic_map.get(topic, topic.lstrip("/")) for topic in commands.values()}
-    classes = {topic: _message_class(bag.topics[topic] or FLOAT_ARRAY) for topic in commands.values()}
-    total = sum(bag.counts.get(t, 0) for t in commands.values())
-    context = Context()
-    # Nothing spins here, so rclpy's signal handlers are not needed; without them Ctrl-C
-    # raises KeyboardInterrupt in the sleep between messages.
-    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
-    node = None
-    sent = 0
-    try:
-        node = Node("dea_twin_replay", context=context)
-        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        pubs = {topic: node.create_publisher(classes[topic], names[topic], qos) for topic in commands.values()}
-        _log("republishing " + ", ".join(f"{t} -> {pubs[t].topic_name}" for t in pubs)
-             + f" ({total} msgs) at {rate:g}x on ROS domain {context.get_domain_id()}")
-        deadline = time.monotonic() + max(0.0, wait)
-        while time.monotonic() < deadline and not all(p.get_subscription_count() for p in pubs.values()):
-            time.sleep(0.02)
-        missing = [p.topic_name for p in pubs.values() if not p.get_subscription_count()]
-        if missing:
-            _log(f"no subscriber yet on {', '.join(missing)} after {wait:g} s; starting anyway")
-        else:
-            time.sleep(0.3)  # matched on our side; let the subscribers' side match too
-        start_wall = None
-        start_log = 0
-        with tqdm(total=total, desc="republish", unit="msg", file=sys.stderr, disable=None) as bar:
-            for msg in bag.messages(commands.values()):
-                if start_wall is None:
-                    start_wall, start_log = time.monotonic(), msg.log_time_ns
-                delay = start_wall + (msg.log_time_ns - start_log) * 1e-9 / rate - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                pubs[msg.topic].publish(msg.data)
-                sent += 1
-                bar.update(1)
-        # Let reliable subscribers acknowledge the last messages before the publishers go.
-        # Bounded: Fast DDS readers acknowledge on the writer's heartbeat (seconds), and
-        # best-effort readers never do; on localhost the data has arrived long before.
-        linger = time.monotonic() + 0.5
-        for pub in pubs.values():
-            pub.wait_for_all_acked(Duration(nanoseconds=max(0, int((linger - time.monotonic()) * 1e9))))
-        _log(f"published {sent} message(s)")
-        return 0
-    except KeyboardInterrupt:
-        _log(f"interrupted after {sent} of {total} message(s)")
-        return 130
-    finally:
-        if node is not None:
-            node.destroy_node()
-        context.try_shutdown()
 
 
 # ----------------------------------------------------------------------- CLI

@@ -308,8 +308,8 @@ def test_an_mcap_recording_gives_the_same_curve_as_the_equivalent_csv(tmp_path, 
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Float64MultiArray
 
+    from dea_array_twin.bag_config import metadata_from_config
     from dea_array_twin.mcap_writer import Ros2McapWriter
-    from dea_array_twin.replay import metadata_from_config
 
     cfg = coarse()
     rng = np.random.default_rng(3)

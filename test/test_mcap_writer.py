@@ -29,7 +29,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension  # noqa: E402
 
-from dea_array_twin import mcap_writer  # noqa: E402
+from dea_array_twin import mcap_writer, msg_definitions  # noqa: E402
 from dea_array_twin.bag_recover import RecoveryError, recover  # noqa: E402
 from dea_array_twin.mcap_writer import RecordingError, Ros2McapWriter, default_qos_yaml  # noqa: E402
 
@@ -189,8 +189,8 @@ def test_three_topics_read_back_identically_by_mcap_ros2_and_rosbags(tmp_path):
 def test_topic_type_hash_is_the_installed_rihs01_hash():
     own = installed_hash(STATES)
     assert own.startswith("RIHS01_") and len(own) == 7 + 64
-    assert mcap_writer.type_hash(STATES) == own == mcap_writer.type_hash("sensor_msgs/JointState")
-    assert mcap_writer.type_hash("std_msgs/msg/Header") == installed_hash("std_msgs/msg/Header")
+    assert msg_definitions.type_hash(STATES) == own == msg_definitions.type_hash("sensor_msgs/JointState")
+    assert msg_definitions.type_hash("std_msgs/msg/Header") == installed_hash("std_msgs/msg/Header")
 
 
 CHILD = r"""

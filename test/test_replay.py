@@ -31,9 +31,10 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String  # noqa: E402
 
 from dea_array_twin import ArrayConfig, ArrayTwin  # noqa: E402
+from dea_array_twin.bag_config import metadata_from_config  # noqa: E402
 from dea_array_twin.cli import main  # noqa: E402
 from dea_array_twin.mcap_writer import Ros2McapWriter  # noqa: E402
-from dea_array_twin.replay import fit, metadata_from_config  # noqa: E402
+from dea_array_twin.replay import fit  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FLOATS, STATES, STRING = "std_msgs/msg/Float64MultiArray", "sensor_msgs/msg/JointState", "std_msgs/msg/String"
@@ -263,7 +264,7 @@ def test_replay_of_a_rosbag2_directory_reads_its_files_in_order(tmp_path, capsys
     assert main(["replay", str(bag), "--out", str(tmp_path / "single_out")]) == 0
     folder = tmp_path / "split_bag"
     folder.mkdir()
-    from dea_array_twin.replay import Bag
+    from dea_array_twin.bag import Bag
 
     whole = Bag(bag)
     meta = {"dea_array_twin_config": whole.metadata("dea_array_twin_config")}

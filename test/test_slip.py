@@ -211,7 +211,7 @@ def test_slip_table_loads_from_yaml_lists(tmp_path):
 
 def test_slip_table_round_trips_through_recording_metadata():
     pytest.importorskip("mcap")
-    from dea_array_twin.replay import config_from_metadata, metadata_from_config
+    from dea_array_twin.bag_config import config_from_metadata, metadata_from_config
 
     for cfg in (BASE, BASE.replace(slip_displacement=(0.0, 1e-5, 0.015), slip_factor=(1.0, 0.1 + 0.2, 0.9))):
         back, modes, ignored = config_from_metadata(metadata_from_config(cfg, FREE_CENTRE))
