@@ -112,7 +112,7 @@ def curve_rows(results: Sequence[CurveResult | CurveFailure]) -> tuple[list[str]
     rows = []
     for res in results:
         t = res.task
-        key = (t.key + ("", "", ""))[:3] if len(t.key) >= 3 else ("coupling", "", t.key[-1])
+        key = t.key if len(t.key) == 3 else ("coupling", "", t.key[-1])
         lead = [*key, t.swept + 1, "free" if t.neighbours is None else t.neighbours, t.voltage]
         if isinstance(res, CurveFailure):
             rows.append(lead + [""] * (len(head) - len(lead) - 1) + [res.message])
@@ -242,7 +242,9 @@ def run_from_args(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
         summary = [f"# dea-twin study {args.study}{' ' + args.name if args.study == 'sweep' else ''}", "",
                    f"Base configuration: {args.config or 'the paper default (Table 1, lp = 1.10)'}; "
-                   f"HV = Ec t0 / lp^2 with Ec = 80 V/um (eq. 14).", ""]
+                   f"HV = Ec t0 / lp^2 with Ec = 80 V/um (eq. 14). Mesh: order {base.element_order}, element sizes "
+                   f"{base.mesh_size * 1e3:g}/{base.mesh_size_electrode * 1e3:g}/{base.mesh_size_indenter * 1e3:g} mm "
+                   f"(far field/electrode edges/indenter edges, before scaling); {args.steps} steps per curve.", ""]
         if args.study == "curves":
             ok = _curves(base, args, out, summary)
         elif args.study == "coupling":
