@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import importlib.util
 import math
 import sys
 from collections.abc import Sequence
@@ -197,7 +198,12 @@ def _fit_with_bar(curves: list[MeasuredCurve], args: argparse.Namespace) -> Yeoh
 
 def run_from_args(args: argparse.Namespace) -> int:
     """Run ``dea-twin calibrate`` for parsed arguments; return the exit code (0 ok, 1 solver, 2 bad input)."""
+    if importlib.util.find_spec("matplotlib") is None:  # checked before the fit, not after it
+        _log("error: needs matplotlib for the figure (pip install 'dea_array_twin[plot]')")
+        return 2
     try:
+        if args.slip is not None and args.start is not None:
+            raise ConfigError("--start sets Yeoh coefficients, which --slip does not fit (put them in the config)")
         if args.max_evaluations < 1:
             raise ConfigError(f"--max-evaluations must be >= 1, got {args.max_evaluations}")
         if not args.settle >= 0:
@@ -207,14 +213,19 @@ def run_from_args(args: argparse.Namespace) -> int:
                                     signal)
         for note in notes:
             _log(note)
+        Path(args.out).mkdir(parents=True, exist_ok=True)
         if args.slip is not None:
             return _run_slip(curves, args)
         result = _fit_with_bar(curves, args)
     except (DataError, BagError, ConfigError, ValueError) as exc:
         _log(f"error: {exc}")
         return 2
+    except OSError as exc:
+        _log(f"error: cannot write the outputs: {exc}")
+        return 2
     except ConvergenceError as exc:
-        _log(f"solver failed at the start point (try another --start): {exc}")
+        hint = "a slip table (try other knots)" if args.slip is not None else "the start point (try another --start)"
+        _log(f"solver failed for {hint}: {exc}")
         return 1
     print(report(result, curves))
     out = Path(args.out)
@@ -243,7 +254,8 @@ def _run_slip(curves: list[MeasuredCurve], args: argparse.Namespace) -> int:
         result = fit_slip(curves, args.slip, max_evaluations=args.max_evaluations,
                           progress=lambda count, factors, cost: bar.update(1))
     print(slip_report(result))
-    before = [simulate(ArrayTwin(c.config), c)[1][:, c.unit] for c in curves]
+    before = [simulate(ArrayTwin(c.config.replace(slip_displacement=(), slip_factor=())), c)[1][:, c.unit]
+              for c in curves]
     after = [simulate(ArrayTwin(result.config(c.config)), c)[1][:, c.unit] for c in curves]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -205,8 +205,10 @@ def read_bag(path: str | Path, config_path: str | None, modes: Sequence[str] | N
     BagError
         Missing, not MCAP, truncated or damaged bag.
     DataError
-        No force or displacement topic, messages not of the config's length, fewer than
-        3 settled samples, a constant force.
+        No force (capacitance) or displacement topic, messages not of the config's
+        length, fewer than 3 settled samples, no unit whose measured signal varies.
+        A unit whose signal is constant or NaN (a rig measuring only some units) is
+        skipped with a note.
     """
     from .plot import load_series
 
@@ -230,20 +232,27 @@ def read_bag(path: str | Path, config_path: str | None, modes: Sequence[str] | N
         i = beyond[0]
         raise DataError(f"{path}: {commanded.topic} at t = {commanded.time_s[i]:.6f} s commands "
                         f"{commanded.values[i].tolist()} m, beyond the config's max_displacement ({limit} m)")
-    force = series[measured_kind]
-    d, d_changed = _held(series["displacement"].time_s, series["displacement"].values, force.time_s, n)
+    measured = series[measured_kind]
+    d, d_changed = _held(series["displacement"].time_s, series["displacement"].values, measured.time_s, n)
     if "voltage" in series:
-        v, v_changed = _held(series["voltage"].time_s, series["voltage"].values, force.time_s, n)
+        v, v_changed = _held(series["voltage"].time_s, series["voltage"].values, measured.time_s, n)
     else:
         v, v_changed = np.zeros_like(d), np.full(len(d), -math.inf)
-    keep = force.time_s - np.maximum(d_changed, v_changed) >= settle
+    keep = measured.time_s - np.maximum(d_changed, v_changed) >= settle
     notes.append(f"{path}: {keep.sum()} of {len(keep)} {measured_kind} message(s) are {settle} s or more after a "
                  f"command change (--settle)")
-    curves = [_curve(f"{Path(path).name} unit {k + 1}", f"{path}, {force.topic}[{k}] (--settle {settle})", cfg,
-                     modes, d[keep], v[keep], k, force.values[keep, k], signal)
-              for k in range(n) if modes[k] == DRIVEN or signal == "C"]
+    curves = []
+    for k in range(n):
+        if modes[k] != DRIVEN and signal == "F":
+            continue
+        values, where = measured.values[keep, k], f"{path}, {measured.topic}[{k}] (--settle {settle})"
+        if values.size >= 3 and not np.ptp(values) > 0:  # constant or NaN: this unit was not measured
+            notes.append(f"{where}: the {measured_kind} of unit {k + 1} does not vary; no curve")
+            continue
+        curves.append(_curve(f"{Path(path).name} unit {k + 1}", where, cfg, modes, d[keep], v[keep], k, values,
+                             signal))
     if not curves:
-        raise DataError(f"{path}: no force curve: every unit is free")
+        raise DataError(f"{path}: no {measured_kind} curve: every unit is free or its {measured_kind} does not vary")
     return curves, notes
 
 

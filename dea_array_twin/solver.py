@@ -248,7 +248,7 @@ class EquilibriumSolver:
         if fact is not None and not np.array_equal(fact.free, free):
             fact = None
         start_stable = self.factorisation is None or self.factorisation.negative_pivots == 0
-        done, step, cuts = 0.0, 1.0, 0
+        done, step, cuts, retries = 0.0, 1.0, 0, 0
         while done < 1.0:
             t = min(1.0, done + step)
             trial = x.copy()
@@ -260,7 +260,7 @@ class EquilibriumSolver:
             outcome = self._newton(trial, free, prescribed, m.maxwell(v0 + t * (v1 - v0)), fact, stats)
             if outcome is None:
                 cuts += 1
-                stats.step_cuts = cuts
+                stats.step_cuts = cuts + retries
                 if cuts > s.max_step_cuts:
                     reached_d, reached_v = d0 + done * (d1 - d0), v0 + done * (v1 - v0)
                     raise ConvergenceError(
@@ -279,8 +279,8 @@ class EquilibriumSolver:
                 fact_new = factorise(m, ke, free, prescribed)
                 stats.factorisations += 1
                 if start_stable and fact_new.negative_pivots > 0 and t - done > s.unstable_step:
-                    cuts += 1  # a long step onto an unstable state: retry it in halves
-                    stats.step_cuts = cuts
+                    retries += 1  # a long step onto an unstable state: retry it in halves
+                    stats.step_cuts = cuts + retries  # (not a Newton failure: max_step_cuts counts those)
                     step = 0.5 * (t - done)
                     continue
             else:

@@ -138,7 +138,8 @@ def measured_units(cfg: ArrayConfig) -> tuple[int, int]:
     """The measured (central) unit and the neighbour swept for eta_C, 0-based.
 
     The central unit is the one nearest the middle of the grid; its neighbour is the
-    next unit to its left (or above it in a single column).
+    next unit in its row (to the left if there is one, else to the right), or in a
+    single column the next unit in the column (above, else below).
 
     Raises
     ------
@@ -149,7 +150,9 @@ def measured_units(cfg: ArrayConfig) -> tuple[int, int]:
         raise ConfigError("layout: coupling studies need an 'array' layout with at least two units")
     row, col = (cfg.rows - 1) // 2, cfg.cols // 2
     centre = row * cfg.cols + col
-    return centre, centre - 1 if cfg.cols > 1 else centre - cfg.cols
+    if cfg.cols > 1:
+        return centre, centre - 1 if col > 0 else centre + 1
+    return centre, centre - cfg.cols if row > 0 else centre + cfg.cols
 
 
 COUPLING_CASES = ("lv_default", "lv_perturbed", "hv_default", "hv_perturbed", "c_neighbour")
@@ -296,6 +299,8 @@ def sweep_tasks(sweep: Sweep, base: ArrayConfig, values: Sequence[float] | None 
     """
     tasks = []
     for value in values if values is not None else sweep.values:
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"{sweep.name} = {value}: sweep values must be finite and > 0")
         try:
             cfg = sweep.apply(base, float(value))
         except ConfigError as exc:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import importlib.util
 import math
 import sys
 import time
@@ -40,9 +41,12 @@ PAPER = {
 
 def _floats(text: str) -> list[float]:
     try:
-        return [float(v) for v in text.replace(",", " ").split()]
+        values = [float(v) for v in text.replace(",", " ").split()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}") from None
+        values = []
+    if not values:
+        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}")
+    return values
 
 
 def _neighbours(text: str) -> list[float | str | None]:
@@ -215,6 +219,8 @@ def _curves(base: ArrayConfig, args: argparse.Namespace, out: Path, summary: lis
     stroke = args.to if args.to is not None else study.STROKE * diameter
     voltages = args.voltages if args.voltages is not None else [0.0, base.hv_voltage(study.CRITICAL_FIELD)]
     neighbours = [study.PRE_DEFLECTION * diameter if nb == "pre" else nb for nb in args.neighbours]
+    if base.n_units == 1:  # no neighbours to set
+        neighbours = [None]
     tasks = [study.CurveTask(base, k, nb, v, stroke, args.steps, ("curves", "free" if nb is None else nb, f"{v:g} V"))
              for k in range(base.n_units) for nb in neighbours for v in voltages]
     results = _run(tasks, args, "curves")
@@ -231,13 +237,20 @@ def _curves(base: ArrayConfig, args: argparse.Namespace, out: Path, summary: lis
 
 def run_from_args(args: argparse.Namespace) -> int:
     """Run ``dea-twin study ...``; returns the exit code."""
+    if importlib.util.find_spec("matplotlib") is None:  # checked before hours of solving, not after
+        print("dea-twin study: error: needs matplotlib for the figures (pip install 'dea_array_twin[plot]')",
+              file=sys.stderr)
+        return 2
     try:
         base = load_config(args.config)
         if args.steps < 1:
             raise ConfigError(f"--steps must be >= 1, got {args.steps}")
         if args.workers < 1:
             raise ConfigError(f"--workers must be >= 1, got {args.workers}")
-        study.measured_units(base)
+        if args.study == "sweep" and args.values is not None and args.name in ("all", "shape"):
+            raise ConfigError(f"--values applies to one parameter sweep, not to '{args.name}'")
+        if args.study != "curves":
+            study.measured_units(base)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         summary = [f"# dea-twin study {args.study}{' ' + args.name if args.study == 'sweep' else ''}", "",

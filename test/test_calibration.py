@@ -349,6 +349,9 @@ def test_an_mcap_recording_gives_the_same_curve_as_the_equivalent_csv(tmp_path, 
     np.testing.assert_array_equal(a.voltage, b.voltage)
     np.testing.assert_array_equal(a.force, b.force)
     assert any("6 of 12 force message(s)" in n for n in notes)
+    driven, notes = calibration_data.load_curves([str(bag)], None, ["driven"] * 3, 0.04)
+    assert [c.name for c in driven] == ["rig.mcap unit 2"]  # units 1 and 3 were not measured (force 0)
+    assert sum("does not vary" in n for n in notes) == 2
 
     with pytest.raises(calibration_data.DataError, match="at least 3"):  # default settle: the answers are too early
         calibration_data.load_curves([str(bag)], None, None, calibration_data.DEFAULT_SETTLE)
@@ -390,6 +393,8 @@ def test_slip_option_fits_gamma_to_csv_capacitance_curves_and_writes_its_files(t
         rows = list(csv.DictReader(f))
     assert len(rows) == 3 * 7
     assert "FIT [%] of the capacitance change" in capsys.readouterr().out
+    assert calibrate(path, "--config", coarse_yaml, "--slip", "0,0.015", "--start", "1,2,3", "--out", out) == 2
+    assert "--start sets Yeoh coefficients" in capsys.readouterr().err
     with pytest.raises(SystemExit) as stop:  # one knot is not a table
         calibrate(path, "--config", coarse_yaml, "--slip", "0.01", "--out", out)
     assert stop.value.code == 2
