@@ -16,6 +16,9 @@ from .study import CurveResult, Sweep
 #: The paper's markers: eta_F,LV blue circles, eta_F,HV red stars, eta_C green diamonds.
 _INDICES = (("eta_f_lv", "$\\eta_{F,LV}$", "o", "tab:blue"), ("eta_f_hv", "$\\eta_{F,HV}$", "*", "tab:red"),
             ("eta_c", "$\\eta_C$", "D", "tab:green"))
+#: The curves each index is computed from (eqs. 13, 15, 16).
+_SOURCES = {"eta_f_lv": ("lv_default", "lv_perturbed"), "eta_f_hv": ("hv_default", "hv_perturbed"),
+            "eta_c": ("lv_default", "c_neighbour")}
 _AXIS = {"spacing": ("electrode spacing d [mm]", 1e3), "edge_distance": ("edge distance b [mm]", 1e3),
          "prestretch": ("pre-stretch $\\lambda_p$ [-]", 1.0), "scale": ("down-scaling factor k [-]", 1.0)}
 
@@ -32,8 +35,9 @@ def _figure(rows: int, cols: int, size: tuple[float, float]):
 def plot_sweep(sweep: Sweep, rows: Sequence[dict], path: Path) -> Path:
     """The three indices against the swept parameter (figures 19-22).
 
-    Hollow markers: some curve of that point was flagged as wrinkled.  For the
-    scale sweep a dotted line marks where d falls below the air breakdown gap.
+    Hollow markers: a curve that index comes from was flagged as wrinkled at that
+    point.  For the scale sweep a dotted line marks where d falls below the air
+    breakdown gap.
     """
     label, factor = _AXIS[sweep.name]
     fig, axes = _figure(1, 1, (7, 4.5))
@@ -42,7 +46,8 @@ def plot_sweep(sweep: Sweep, rows: Sequence[dict], path: Path) -> Path:
     for key, name, marker, colour in _INDICES:
         y = np.array([row[key] for row in rows], dtype=float)
         ax.plot(x, y, "-", color=colour, lw=0.8)
-        wrinkled = np.array([bool(row.get("wrinkled")) for row in rows])
+        wrinkled = np.array([bool(set(str(row.get("wrinkled", "")).split()) & set(_SOURCES[key]))
+                             for row in rows])
         ax.plot(x[~wrinkled], y[~wrinkled], marker, color=colour, ls="none", label=name)
         if wrinkled.any():
             ax.plot(x[wrinkled], y[wrinkled], marker, mfc="none", color=colour, ls="none",
