@@ -40,7 +40,7 @@ if not hasattr(Writer, "flush"):  # pragma: no cover - depends on the install
     raise ImportError("dea_array_twin.mcap_writer needs mcap >= 1.5 (Writer.flush closes a chunk on demand); "
                       f"found mcap {getattr(mcap, '__version__', '?')}")
 
-from .msg_definitions import _split_type_name, message_definition, type_hash
+from .msg_definitions import split_type_name, message_definition, type_hash
 
 __all__ = ["CONFIG_RECORD", "RecordingError", "Ros2McapWriter", "default_qos_yaml"]
 
@@ -245,7 +245,7 @@ class Ros2McapWriter:
         ValueError
             The topic is already registered with another type.
         """
-        package, name = _split_type_name(type_name)
+        package, name = split_type_name(type_name)
         type_name = f"{package}/msg/{name}"
         with self._lock:
             self._check_usable()

@@ -19,7 +19,7 @@ import json
 import sys
 from pathlib import Path
 
-__all__ = ["message_definition", "type_hash"]
+__all__ = ["message_definition", "split_type_name", "type_hash"]
 
 SEPARATOR = "=" * 80
 
@@ -27,7 +27,7 @@ _PRIMITIVES = frozenset({"bool", "byte", "char", "float32", "float64", "int8", "
                          "uint32", "int64", "uint64", "string", "wstring"})
 
 
-def _split_type_name(type_name: str) -> tuple[str, str]:
+def split_type_name(type_name: str) -> tuple[str, str]:
     """``pkg/msg/Type`` or ``pkg/Type`` -> ``(pkg, Type)``."""
     parts = type_name.split("/")
     if len(parts) == 3 and parts[1] == "msg" and all(parts):
@@ -84,7 +84,7 @@ def _msg_dependencies(text: str, package: str) -> list[str]:
         base = line.split()[0].split("[", 1)[0].split("<=", 1)[0]
         if base in _PRIMITIVES:
             continue
-        pkg, name = _split_type_name(base) if "/" in base else (package, base)
+        pkg, name = split_type_name(base) if "/" in base else (package, base)
         deps.add(f"{pkg}/{name}")
     return sorted(deps)
 
@@ -109,7 +109,7 @@ def message_definition(type_name: str) -> str:
     RecordingError
         A ``.msg`` file is not installed.
     """
-    package, name = _split_type_name(type_name)
+    package, name = split_type_name(type_name)
     seen = {f"{package}/{name}"}
 
     def with_dependencies(pkg: str, typ: str) -> str:
@@ -133,7 +133,7 @@ def type_hash(type_name: str) -> str:
     "pkg/msg/Type", "hash_string": "RIHS01_..."}, ...]}``: the entry of the type itself
     and one per referenced type.
     """
-    package, name = _split_type_name(type_name)
+    package, name = split_type_name(type_name)
     path = _interface_file(package, name, ".json")
     if path is None:
         return ""

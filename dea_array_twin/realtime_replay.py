@@ -13,7 +13,7 @@ import math
 import sys
 import time
 
-from .bag import Bag, BagError, _normalise_type
+from .bag import Bag, BagError, normalise_type
 from .topics import FLOAT_ARRAY, command_topics
 
 __all__ = ["realtime_replay"]
@@ -26,7 +26,7 @@ def _log(text: str) -> None:
 def _message_class(type_name: str):
     import importlib
 
-    package, _, name = _normalise_type(type_name).split("/")
+    package, _, name = normalise_type(type_name).split("/")
     try:
         return getattr(importlib.import_module(f"{package}.msg"), name)
     except (ImportError, AttributeError):
