@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 
 import yaml
 
-__all__ = ["Bag", "BagError", "BagMessage", "bag_files", "normalise_type"]
+__all__ = ["Bag", "BagError", "BagMessage", "bag_files"]
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -52,7 +52,7 @@ class _FileInfo:
     metadata: dict[str, dict[str, str]]
 
 
-def normalise_type(name: str) -> str:
+def _normalise_type(name: str) -> str:
     """``pkg/Type`` or ``pkg/msg/Type`` -> ``pkg/msg/Type``."""
     parts = name.split("/")
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
@@ -170,7 +170,7 @@ def _inspect(path: Path) -> _FileInfo:
             if summary is not None:
                 for channel in summary.channels.values():
                     schema = summary.schemas.get(channel.schema_id)
-                    topics[channel.topic] = normalise_type(schema.name) if schema else ""
+                    topics[channel.topic] = _normalise_type(schema.name) if schema else ""
             if summary is not None and summary.statistics is not None:
                 for cid, n in summary.statistics.channel_message_counts.items():
                     if cid in summary.channels:
@@ -179,7 +179,7 @@ def _inspect(path: Path) -> _FileInfo:
                     start_ns = summary.statistics.message_start_time
             else:  # complete but without summary or statistics: scan it once
                 for schema, channel, message in reader.iter_messages(log_time_order=False):
-                    topics[channel.topic] = normalise_type(schema.name) if schema else ""
+                    topics[channel.topic] = _normalise_type(schema.name) if schema else ""
                     counts[channel.topic] += 1
                     start_ns = message.log_time if start_ns is None else min(start_ns, message.log_time)
             for record in reader.iter_metadata():
@@ -275,7 +275,7 @@ class Bag:
             with open(path, "rb") as f:
                 reader = make_reader(f)
                 for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
-                    type_name = normalise_type(schema.name) if schema else ""
+                    type_name = _normalise_type(schema.name) if schema else ""
                     decoded = None
                     if decode:
                         decoder = factory.decoder_for(channel.message_encoding, schema)

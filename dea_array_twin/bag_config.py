@@ -18,7 +18,7 @@ from .bag import Bag
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .mcap_writer import CONFIG_RECORD
-from .model import DRIVEN, MODES
+from .model import DRIVEN, check_modes
 
 __all__ = ["config_from_metadata", "metadata_from_config", "resolve_config"]
 
@@ -108,8 +108,9 @@ def resolve_config(bag: Bag, config_path: str | None,
         if recorded_modes is not None:
             notes.append(f"warning: recorded unit_modes {recorded_modes} do not fit {n} units; ignored")
         modes, source = [DRIVEN] * n, "default (all driven)"
-    modes = tuple(modes)
-    if len(modes) != n or any(m not in MODES for m in modes):
-        raise ConfigError(f"unit modes must be {n} values out of {MODES}, got {list(modes)} (from {source})")
+    try:
+        modes = check_modes(modes, n)
+    except ValueError as exc:
+        raise ConfigError(f"unit {exc} (from {source})") from None
     notes.append(f"unit modes {', '.join(modes)} from {source}")
     return cfg, modes, notes

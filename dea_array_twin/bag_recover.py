@@ -12,11 +12,10 @@ channels, metadata, attachments, messages, then a fresh summary)::
 from __future__ import annotations
 
 import os
-import struct
 import sys
 from pathlib import Path
 
-from mcap.exceptions import InvalidMagic, McapError
+from mcap.exceptions import InvalidMagic
 from mcap.records import Attachment, Channel, Chunk, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import Writer
@@ -28,7 +27,7 @@ __all__ = ["RecoveryError", "recover"]
 # What a truncated or damaged record raises inside ``mcap`` varies: McapError (short read,
 # record too long), struct.error (cut-off integer), UnicodeDecodeError, ValueError (CRC),
 # and whatever the lz4/zstd decompressors raise.  Any failure while parsing is damage.
-_DAMAGE = (McapError, struct.error, Exception)
+_DAMAGE = Exception
 
 
 class RecoveryError(ValueError):

@@ -23,7 +23,7 @@ from .bag_config import resolve_config
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .measured import MeasuredCurve
-from .model import DRIVEN, FREE, MODES
+from .model import DRIVEN, FREE, check_modes
 from .replay import csv_header
 
 __all__ = ["DataError", "load_curves", "read_bag", "read_csv"]
@@ -273,9 +273,10 @@ def load_curves(data: Sequence[str], config_path: str | None, modes: Sequence[st
             more, more_notes = read_bag(path, config, modes, settle, topic_map, signal)
         else:
             cfg = load_config(config)
-            used = tuple(modes) if modes is not None else (DRIVEN,) * cfg.n_units
-            if len(used) != cfg.n_units or any(m not in MODES for m in used):
-                raise ConfigError(f"--modes must be {cfg.n_units} values out of {MODES}, got {list(used)}")
+            try:
+                used = check_modes(modes if modes is not None else (DRIVEN,) * cfg.n_units, cfg.n_units)
+            except ValueError as exc:
+                raise ConfigError(f"--{exc}") from None
             more, more_notes = read_csv(path, cfg, used, signal)
             more_notes.insert(0, f"{path}: config {config or 'default'}, unit modes {', '.join(used)}")
         curves += more

@@ -14,7 +14,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .config import ConfigError
+from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .model import DRIVEN, FREE
 from .solver import ConvergenceError
@@ -89,33 +89,28 @@ def _report_warnings(result: TwinResult, label: str) -> None:
         print(f"dea-twin: warning at {label}: {text}", file=sys.stderr)
 
 
-def run_curve(args: argparse.Namespace, twin: ArrayTwin) -> dict:
-    """Sweep unit ``args.unit`` from 0 to ``args.to``; return the curve as a dict."""
-    n = twin.n_units
+def run_curve(args: argparse.Namespace, cfg: ArrayConfig) -> dict:
+    """Sweep unit ``args.unit`` from 0 to ``args.to`` (:func:`.study.run_curve`); return the curve as a dict."""
+    from tqdm import tqdm
+
+    from .study import CurveTask, run_curve as solve_curve
+
+    n = cfg.n_units
     if not 1 <= args.unit <= n:
         raise ConfigError(f"--unit must be in [1, {n}], got {args.unit}")
     if args.steps < 1:
         raise ConfigError(f"--steps must be >= 1, got {args.steps}")
-    k = args.unit - 1
-    modes = [FREE if args.neighbours == FREE else DRIVEN] * n
-    modes[k] = DRIVEN
-    base = np.zeros(n) if args.neighbours == FREE else np.full(n, float(args.neighbours))
-    voltage = np.zeros(n)
-    voltage[k] = args.voltage
-    if args.neighbours != FREE:  # pre-deflect the neighbours first, at 0 V
-        twin.solve(np.where(np.arange(n) == k, 0.0, base), np.zeros(n), modes)
-    displacements = np.linspace(0.0, args.to, args.steps + 1)
-    forces, caps = [], []
-    from tqdm import tqdm
+    task = CurveTask(cfg, args.unit - 1, None if args.neighbours == FREE else float(args.neighbours), args.voltage,
+                     args.to, args.steps)
+    with tqdm(total=args.steps + 1, desc=f"unit {args.unit} sweep", unit="step", file=sys.stderr,
+              disable=None) as bar:
+        def on_point(d: float, res: TwinResult) -> None:
+            _report_warnings(res, f"d = {d:.6g} m")
+            bar.update(1)
 
-    for d in tqdm(displacements, desc=f"unit {args.unit} sweep", unit="step", file=sys.stderr, disable=None):
-        command = base.copy()
-        command[k] = d
-        res = twin.solve(command, voltage, modes)
-        _report_warnings(res, f"d = {d:.6g} m")
-        forces.append(res.force.tolist())
-        caps.append(res.capacitance.tolist())
-    return {"unit": args.unit, "displacement": displacements.tolist(), "force": forces, "capacitance": caps}
+        res = solve_curve(task, on_point)
+    return {"unit": args.unit, "displacement": res.displacement.tolist(), "force": res.force.tolist(),
+            "capacitance": res.capacitance.tolist()}
 
 
 def _print_curve(curve: dict) -> None:
@@ -181,12 +176,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         module = {"replay": replay, "plot": plot, "study": study_cli, "calibrate": calibration_cli}[args.command]
         return module.run_from_args(args)
     try:
-        twin = ArrayTwin(load_config(args.config))
+        cfg = load_config(args.config)
         if args.command == "curve":
-            curve = run_curve(args, twin)
+            curve = run_curve(args, cfg)
             print(json.dumps(curve)) if args.json else _print_curve(curve)
         else:
-            res = run_solve(args, twin)
+            res = run_solve(args, ArrayTwin(cfg))
             if args.json:
                 print(json.dumps(_solve_dict(res)))
             else:

@@ -23,6 +23,14 @@ from .mesh import Mesh, build_mesh, geometry_key
 DRIVEN, FREE = "driven", "free"
 MODES = (DRIVEN, FREE)
 
+
+def check_modes(modes: Sequence[str], n_units: int) -> tuple[str, ...]:
+    """``modes`` as a tuple if it holds ``n_units`` values out of :data:`MODES`; else ValueError."""
+    modes = tuple(modes)
+    if len(modes) != n_units or any(m not in MODES for m in modes):
+        raise ValueError(f"modes must be {n_units} values out of {MODES}, got {list(modes)}")
+    return modes
+
 #: Sparsity patterns per mesh geometry: they depend on the connectivity only (not on
 #: scale or material), and building one costs ~40 ms, so twins of one geometry with
 #: other materials or scales (calibration, studies) share it.
@@ -94,10 +102,7 @@ class MembraneModel:
 
     def check_modes(self, modes: Sequence[str]) -> tuple[str, ...]:
         """Validate a per-unit mode sequence and return it as a tuple."""
-        modes = tuple(modes)
-        if len(modes) != self.n_units or any(m not in MODES for m in modes):
-            raise ValueError(f"modes must be {self.n_units} values out of {MODES}, got {modes}")
-        return modes
+        return check_modes(modes, self.n_units)
 
     def prescribed_dofs(self, modes: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
         """Sorted prescribed and free dof numbers for the given unit modes.

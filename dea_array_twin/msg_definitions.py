@@ -5,7 +5,8 @@
   once, dependencies of each type in sorted order as rosbag2 does), by ``"\\n"``, a
   line of 80 ``=``, a line ``MSG: pkg/Type`` and that type's ``.msg`` text;
 * :func:`type_hash`: the channel's ``topic_type_hash``, the ``RIHS01_...`` string from
-  ``share/<pkg>/msg/<Type>.json``.
+  ``share/<pkg>/msg/<Type>.json``;
+* :func:`message_class`: the Python class of a type (imports ``<pkg>.msg``).
 
 Both read the installed interface files, found through the ament index or else under
 ``sys.prefix``; no rclpy.  A missing ``.msg`` file raises the writer's
@@ -15,11 +16,12 @@ Both read the installed interface files, found through the ament index or else u
 from __future__ import annotations
 
 import functools
+import importlib
 import json
 import sys
 from pathlib import Path
 
-__all__ = ["message_definition", "split_type_name", "type_hash"]
+__all__ = ["message_class", "message_definition", "split_type_name", "type_hash"]
 
 SEPARATOR = "=" * 80
 
@@ -35,6 +37,15 @@ def split_type_name(type_name: str) -> tuple[str, str]:
     if len(parts) == 2 and all(parts):
         return parts[0], parts[1]
     raise ValueError(f"not a ROS 2 message type name (pkg/msg/Type): {type_name!r}")
+
+
+def message_class(type_name: str) -> type:
+    """The Python class of ``pkg/msg/Type`` (or ``pkg/Type``); ImportError if it is not installed."""
+    package, name = split_type_name(type_name)
+    try:
+        return getattr(importlib.import_module(f"{package}.msg"), name)
+    except (ImportError, AttributeError):
+        raise ImportError(f"message type {type_name} is not installed (python package {package}.msg)") from None
 
 
 def _share_dirs(package: str) -> list[Path]:

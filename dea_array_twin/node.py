@@ -11,7 +11,7 @@ Interface (relative names, so ``-r __ns:=/left_array`` runs several arrays; SI u
   TRIANGLE_LIST) at ``marker_rate``; ``/diagnostics`` at 1 Hz.
 * service ``reset`` (std_srvs/Trigger): all units to 0 m, 0 V, flat membrane.
 
-The node only translates messages: validation rules live in :func:`command_error`,
+The node only translates messages: validation rules live in :func:`.twin.command_error`,
 physics in :class:`~.twin.ArrayTwin`.
 """
 
@@ -34,36 +34,14 @@ from visualization_msgs.msg import Marker
 
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
-from .model import DRIVEN, MODES
+from .model import DRIVEN, check_modes
 from .ros_params import RUNTIME_FIELDS, config_descriptor, config_fields, declared_default
 from .rosmain import spin_node
 from .solver import ConvergenceError
-from .twin import ArrayTwin, TwinResult
+from .twin import ArrayTwin, TwinResult, command_error
 
 COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-
-
-def command_error(kind: str, values: Sequence[float], cfg: ArrayConfig) -> str | None:
-    """Why a command is invalid, or None.  ``kind`` is "displacement" or "voltage"."""
-    n = cfg.n_units
-    if len(values) != n:
-        return f"{kind} command has {len(values)} values, expected {n} (one per unit)"
-    arr = np.asarray(values, dtype=float)
-    if not np.all(np.isfinite(arr)):
-        return f"{kind} command contains NaN or inf: {arr.tolist()}"
-    if kind == "displacement":
-        limit = cfg.scaled("max_displacement")
-        if np.any(np.abs(arr) > limit):
-            return f"displacement {arr.tolist()} m beyond max_displacement {limit} m"
-        return None
-    if np.any(arr < 0):
-        return f"negative voltage {arr.tolist()} V (the electrodes are driven by one polarity)"
-    v_max = cfg.breakdown_field * cfg.thickness / cfg.prestretch**2
-    if np.any(arr > v_max):
-        return (f"voltage {arr.tolist()} V above {v_max:.0f} V, where the flat pre-stretched field "
-                f"reaches breakdown_field {cfg.breakdown_field:.4g} V/m")
-    return None
 
 
 def unit_array(values: Sequence[float]) -> Float64MultiArray:
@@ -94,7 +72,7 @@ class TwinNode(Node):
             "unit_modes", [DRIVEN] * n,
             ParameterDescriptor(description="per unit 'driven' (indenter follows command/displacement) or "
                                             "'free' (no indenter)")).value
-        self._check_modes(list(modes))
+        self._check_modes(modes)
         self.modes = tuple(modes)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         for name in ("update_rate", "marker_rate", "stability_check_period"):
@@ -159,10 +137,11 @@ class TwinNode(Node):
             values[name] = default if value is None else value  # None: an unset (empty) table
         return ArrayConfig.from_dict(values)
 
-    def _check_modes(self, modes: list) -> None:
-        n = self.twin.n_units
-        if len(modes) != n or any(m not in MODES for m in modes):
-            raise ConfigError(f"unit_modes: must be {n} values out of {MODES}, got {modes}")
+    def _check_modes(self, modes: Sequence[str]) -> None:
+        try:
+            check_modes(modes, self.twin.n_units)
+        except ValueError as exc:
+            raise ConfigError(f"unit_modes: {exc}") from None
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         changes = {}
@@ -170,7 +149,7 @@ class TwinNode(Node):
         for p in params:
             if p.name == "unit_modes":
                 try:
-                    self._check_modes(list(p.value))
+                    self._check_modes(p.value)
                 except ConfigError as exc:
                     return SetParametersResult(successful=False, reason=str(exc))
                 modes = tuple(p.value)

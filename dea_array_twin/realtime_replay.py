@@ -13,7 +13,8 @@ import math
 import sys
 import time
 
-from .bag import Bag, BagError, normalise_type
+from .bag import Bag, BagError
+from .msg_definitions import message_class
 from .topics import FLOAT_ARRAY, command_topics
 
 __all__ = ["realtime_replay"]
@@ -23,14 +24,11 @@ def _log(text: str) -> None:
     print(f"dea-twin replay: {text}", file=sys.stderr)
 
 
-def _message_class(type_name: str):
-    import importlib
-
-    package, _, name = normalise_type(type_name).split("/")
+def _message_class(type_name: str) -> type:
     try:
-        return getattr(importlib.import_module(f"{package}.msg"), name)
-    except (ImportError, AttributeError):
-        raise BagError(f"message type {type_name} is not installed (python package {package}.msg)") from None
+        return message_class(type_name)
+    except (ImportError, ValueError) as exc:
+        raise BagError(str(exc)) from None
 
 
 def realtime_replay(bag: Bag, topic_map: dict[str, str], rate: float = 1.0, wait: float = 2.0) -> int:

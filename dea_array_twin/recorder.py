@@ -19,6 +19,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from .mcap_writer import CONFIG_RECORD, RecordingError, Ros2McapWriter, default_qos_yaml
+from .msg_definitions import message_class
 
 #: Relative topic name -> ROS type recorded by the twin.
 RECORDED_TOPICS = {
@@ -30,12 +31,6 @@ RECORDED_TOPICS = {
     "membrane": "visualization_msgs/msg/Marker",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
-
-
-def _message_class(type_name: str) -> type:
-    pkg, _, name = type_name.split("/")
-    module = __import__(f"{pkg}.msg", fromlist=[name])
-    return getattr(module, name)
 
 
 class TopicRecorder:
@@ -72,7 +67,7 @@ class TopicRecorder:
             reliability = ReliabilityPolicy.BEST_EFFORT if topic.startswith("command/") else ReliabilityPolicy.RELIABLE
             qos = QoSProfile(depth=100, reliability=reliability)
             self._subs.append(node.create_subscription(
-                _message_class(type_name), topic, lambda data, cid=cid: self._write(cid, data), qos, raw=True))
+                message_class(type_name), topic, lambda data, cid=cid: self._write(cid, data), qos, raw=True))
         self._timer = node.create_timer(1.0, self.flush)
 
     def _absolute(self, topic: str) -> str:

@@ -23,7 +23,7 @@ mcap`` has the command topics only):
 
 Offline replay (:func:`replay_commands`) is sample and hold: displacement and voltage
 start at zero, each command message in log-time order replaces one of them and triggers
-one solve.  Commands the twin node would reject (:func:`~.node.command_error`: wrong
+one solve.  Commands the twin node would reject (:func:`~.twin.command_error`: wrong
 length, NaN/inf, beyond ``max_displacement``, negative or breakdown voltage) are
 skipped and counted.  The first solver failure stops the replay (exit code 1); what
 was computed up to it is still written.  Outputs, one entry per solve:
@@ -79,7 +79,7 @@ from .topics import (
     output_topics,
     parse_topic_map,
 )
-from .twin import ArrayTwin
+from .twin import ArrayTwin, command_error
 
 __all__ = ["ReplayRun", "compare_outputs", "fit", "replay_commands", "run_from_args"]
 
@@ -168,7 +168,6 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
     """
     from tqdm import tqdm
 
-    from .node import command_error
 
     n = twin.n_units
     twin.reset()

@@ -29,7 +29,7 @@ from .config import ArrayConfig, ConfigError
 from .geometry import edge_distance
 from .model import DRIVEN, FREE
 from .solver import ConvergenceError, NewtonSettings
-from .twin import ArrayTwin
+from .twin import ArrayTwin, TwinResult
 
 #: Field strength of air at breakdown used by the paper for the minimum spacing [V/m].
 AIR_BREAKDOWN_FIELD = 3e6
@@ -103,8 +103,15 @@ class CurveResult:
     stable: np.ndarray
 
 
-def run_curve(task: CurveTask) -> CurveResult:
+#: :class:`CurveResult` fields stacked point by point from :class:`~.twin.TwinResult` fields of the same name.
+_STACKED = ("force", "capacitance", "delta_capacitance", "min_principal_stress", "wrinkled", "field_exceeded")
+
+
+def run_curve(task: CurveTask, on_point: Callable[[float, TwinResult], None] | None = None) -> CurveResult:
     """Solve a :class:`CurveTask` from the flat state (deterministic, no shared state).
+
+    ``on_point(d, result)``, if given, is called after each point (progress,
+    warnings): side effects stay out of the loop.
 
     Raises
     ------
@@ -123,13 +130,12 @@ def run_curve(task: CurveTask) -> CurveResult:
     rows = []
     for d in displacement:
         rows.append(twin.solve(np.where(others, base, d), voltage, modes))
-    return CurveResult(
-        task=task, displacement=displacement,
-        force=np.array([r.force for r in rows]), capacitance=np.array([r.capacitance for r in rows]),
-        delta_capacitance=np.array([r.delta_capacitance for r in rows]),
-        min_principal_stress=np.array([r.min_principal_stress for r in rows]),
-        wrinkled=np.array([r.wrinkled for r in rows]), field_exceeded=np.array([r.field_exceeded for r in rows]),
-        stable=np.array([r.stable is not False for r in rows]))
+        if on_point is not None:
+            on_point(float(d), rows[-1])
+    stacked = {name: np.array([getattr(r, name) for r in rows]) for name in _STACKED}
+    return CurveResult(task=task, displacement=displacement, stable=np.array([r.stable is not False for r in rows]),
+                       **stacked)
+
 
 
 # --------------------------------------------------------------------- coupling

@@ -87,22 +87,15 @@ def plot_coupling_curves(results: Sequence, path: Path) -> Path:
     for case, style, label in (("lv_default", "-", f"unit {centre + 1} swept"), ("c_neighbour", "--", "neighbour swept")):
         if case in curves:
             _curve_axes(axes[0, 1], curves[case], centre, "capacitance", style, "tab:green", label)
-    axes[0, 0].set(xlabel="swept unit's displacement [mm]", ylabel=f"force on unit {centre + 1} [N]")
-    axes[0, 1].set(xlabel="swept unit's displacement [mm]", ylabel=f"capacitance change of unit {centre + 1} [pF]")
-    for ax in axes[0]:
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.suptitle("coupling curves (hollow circles: wrinkling flagged)")
-    fig.savefig(path, dpi=110)
-    return path
+    return _save_pair(fig, axes, "swept unit's displacement [mm]", f"unit {centre + 1}",
+                      "coupling curves (hollow circles: wrinkling flagged)", path)
 
 
 def plot_curves(results: Sequence[CurveResult], path: Path) -> Path:
     """Figures 12-16: row = swept unit; columns = its force, then each unit's dC."""
     n = results[0].task.config.n_units
     fig, axes = _figure(n, n + 1, (3.2 * (n + 1), 2.6 * n))
-    settings = list(dict.fromkeys(r.task.key[1:] for r in results))
-    colours = {s: f"C{i % 10}" for i, s in enumerate(dict.fromkeys(s[0] for s in settings))}
+    colours = {nb: f"C{i % 10}" for i, nb in enumerate(dict.fromkeys(r.task.key[1] for r in results))}
     volts = sorted({r.task.voltage for r in results})
     for res in results:
         k = res.task.swept
@@ -135,12 +128,17 @@ def plot_shape(results: Sequence[CurveResult], path: Path) -> Path:
         label = f"{shape}, {case.upper()}"
         _curve_axes(axes[0, 0], res, res.task.swept, "force", style, colour, label)
         _curve_axes(axes[0, 1], res, res.task.swept, "capacitance", style, colour, label)
-    axes[0, 0].set(xlabel="displacement [mm]", ylabel="force [N]")
-    axes[0, 1].set(xlabel="displacement [mm]", ylabel="capacitance change [pF]")
+    return _save_pair(fig, axes, "displacement [mm]", "the swept unit", "electrode shape at equal area", path)
+
+
+def _save_pair(fig, axes, xlabel: str, unit: str, title: str, path: Path) -> Path:
+    """Label a (force, capacitance change) pair of axes, add grid and legends, save."""
+    axes[0, 0].set(xlabel=xlabel, ylabel=f"force on {unit} [N]")
+    axes[0, 1].set(xlabel=xlabel, ylabel=f"capacitance change of {unit} [pF]")
     for ax in axes[0]:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle("electrode shape at equal area")
+    fig.suptitle(title)
     fig.savefig(path, dpi=110)
     return path
 

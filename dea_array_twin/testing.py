@@ -35,16 +35,15 @@ from rclpy.parameter import Parameter
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
+from .msg_definitions import message_class
 from .node import OUTPUT_QOS, TwinNode
+from .recorder import RECORDED_TOPICS
 
 
 def _output_types() -> dict[str, type]:
-    from diagnostic_msgs.msg import DiagnosticArray
-    from sensor_msgs.msg import JointState
-    from visualization_msgs.msg import Marker
-
-    return {"force": Float64MultiArray, "capacitance": Float64MultiArray, "unit_states": JointState,
-            "membrane": Marker, "/diagnostics": DiagnosticArray}
+    """The twin's output topics (everything it records but the commands) and their classes."""
+    return {topic: message_class(type_name) for topic, type_name in RECORDED_TOPICS.items()
+            if not topic.startswith("command/")}
 
 
 class TwinHarness:

@@ -18,7 +18,7 @@ from .config import ArrayConfig
 from .model import DRIVEN, FREE, MembraneModel
 from .solver import ConvergenceError, EquilibriumSolver, NewtonSettings
 
-__all__ = ["ArrayTwin", "TwinResult", "ConvergenceError", "DRIVEN", "FREE"]
+__all__ = ["ArrayTwin", "TwinResult", "ConvergenceError", "DRIVEN", "FREE", "command_error"]
 
 
 @dataclass(frozen=True)
@@ -102,6 +102,32 @@ class TwinResult:
     def ok(self) -> bool:
         """True when no warning applies."""
         return not self.warnings
+
+
+def command_error(kind: str, values: Sequence[float], cfg: ArrayConfig) -> str | None:
+    """Why a command the node or a replay would reject is invalid, or None.
+
+    ``kind`` is "displacement" or "voltage".  Stricter than :meth:`ArrayTwin.solve`
+    (which solves any finite command within ``max_displacement``): a voltage must
+    also be >= 0 and keep the flat pre-stretched field below ``breakdown_field``."""
+    n = cfg.n_units
+    if len(values) != n:
+        return f"{kind} command has {len(values)} values, expected {n} (one per unit)"
+    arr = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(arr)):
+        return f"{kind} command contains NaN or inf: {arr.tolist()}"
+    if kind == "displacement":
+        limit = cfg.scaled("max_displacement")
+        if np.any(np.abs(arr) > limit):
+            return f"displacement {arr.tolist()} m beyond max_displacement {limit} m"
+        return None
+    if np.any(arr < 0):
+        return f"negative voltage {arr.tolist()} V (the electrodes are driven by one polarity)"
+    v_max = cfg.hv_voltage(cfg.breakdown_field)
+    if np.any(arr > v_max):
+        return (f"voltage {arr.tolist()} V above {v_max:.0f} V, where the flat pre-stretched field "
+                f"reaches breakdown_field {cfg.breakdown_field:.4g} V/m")
+    return None
 
 
 class ArrayTwin:

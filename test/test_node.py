@@ -49,7 +49,7 @@ def test_commands_from_another_process_give_the_cores_direct_solve():
     ("voltage", [0.0, 9000.0, 0.0], "breakdown_field"),
 ])
 def test_bad_commands_are_rejected_counted_and_change_nothing(kind, values, reason):
-    from dea_array_twin.node import command_error
+    from dea_array_twin.twin import command_error
 
     assert reason in command_error(kind, values, ArrayConfig())
     with TwinHarness(parameters={"update_rate": 50.0}) as h:
