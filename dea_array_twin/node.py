@@ -35,7 +35,7 @@ from visualization_msgs.msg import Marker
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .model import DRIVEN, check_modes
-from .ros_params import RUNTIME_FIELDS, config_descriptor, config_fields, declared_default
+from .ros_params import RUNTIME_FIELDS, config_descriptor, config_fields, declare_number, declared_default
 from .rosmain import spin_node
 from .solver import ConvergenceError
 from .twin import ArrayTwin, TwinResult, command_error
@@ -60,12 +60,12 @@ class TwinNode(Node):
         cfg = self._declare_config()
         self.twin = ArrayTwin(cfg)
         n = cfg.n_units
-        self.update_rate = self._number("update_rate", 100.0, "updates per second [Hz]; 0 = one per command")
-        self.marker_rate = self._number("marker_rate", 5.0, "membrane marker rate [Hz]; 0 = off")
+        self.update_rate = declare_number(self, "update_rate", 100.0, "updates per second [Hz]; 0 = one per command")
+        self.marker_rate = declare_number(self, "marker_rate", 5.0, "membrane marker rate [Hz]; 0 = off")
         self.frame_id = self.declare_parameter(
             "frame_id", "dea_array", ParameterDescriptor(description="frame of unit_states and membrane",
                                                          read_only=True)).value
-        self.stability_period = self._number(
+        self.stability_period = declare_number(self, 
             "stability_check_period", 1.0,
             "seconds between stability checks of the equilibrium (a tangent factorisation, ~20 ms); 0 = every update")
         modes = self.declare_parameter(
@@ -75,10 +75,6 @@ class TwinNode(Node):
         self._check_modes(modes)
         self.modes = tuple(modes)
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        for name in ("update_rate", "marker_rate", "stability_check_period"):
-            value = self.get_parameter(name).value
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value < math.inf):
-                raise ConfigError(f"{name}: must be a number >= 0, got {value!r}")
 
         self.displacement = np.zeros(n)
         self.voltage = np.zeros(n)
@@ -117,15 +113,6 @@ class TwinNode(Node):
             f"update_rate {self.update_rate} Hz")
 
     # ---------------------------------------------------------------- parameters
-    def _number(self, name: str, default: float, text: str) -> float:
-        """Declare a read-only numeric parameter that accepts integers too."""
-        value = self.declare_parameter(name, default, ParameterDescriptor(
-            description=text, read_only=True, dynamic_typing=True)).value
-        try:
-            return float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"{name}: must be a number, got {value!r}") from None
-
     def _declare_config(self) -> ArrayConfig:
         path = self.declare_parameter(
             "config_file", "", ParameterDescriptor(description="twin config YAML; parameters below override it",
@@ -171,8 +158,8 @@ class TwinNode(Node):
             description="record commands, outputs and diagnostics to MCAP", read_only=True)).value
         directory = self.declare_parameter("record_dir", "recordings", ParameterDescriptor(
             description="folder of the MCAP recordings", read_only=True)).value
-        split_size = self._number("record_split_size", 0.0, "start a new file after this many bytes; 0 = never")
-        split_duration = self._number("record_split_duration", 0.0,
+        split_size = declare_number(self, "record_split_size", 0.0, "start a new file after this many bytes; 0 = never")
+        split_duration = declare_number(self, "record_split_duration", 0.0,
                                       "start a new file after this many seconds; 0 = never")
         if not record:
             return
@@ -184,7 +171,7 @@ class TwinNode(Node):
         try:
             self.recorder = TopicRecorder(self, directory, metadata, self._on_recording_error,
                                           split_size=split_size, split_duration=split_duration)
-            self.get_logger().info(f"recording to {self.recorder.path}")
+            self.get_logger().info(f"recording to {self.recorder.writer.path}")
         except RecordingError as exc:
             self._on_recording_error(f"recording not started: {exc}")
 

@@ -56,25 +56,18 @@ class TopicRecorder:
         self.on_error = on_error
         self.error = ""
         stamp = time.strftime("%Y%m%d_%H%M%S")
-        self.path = Path(directory).expanduser() / f"dea_twin_{stamp}.mcap"
-        self.writer = Ros2McapWriter(self.path, metadata={CONFIG_RECORD: metadata}, flush_period=1.0,
+        self.writer = Ros2McapWriter(Path(directory).expanduser() / f"dea_twin_{stamp}.mcap", metadata={CONFIG_RECORD: metadata}, flush_period=1.0,
                                      split_size=int(split_size) if split_size else None,
                                      split_duration=split_duration or None)
         qos_yaml = default_qos_yaml(reliable=True, depth=10)
         self._subs = []
         for topic, type_name in RECORDED_TOPICS.items():
-            cid = self.writer.add_topic(self._absolute(topic), type_name, qos_yaml)
+            cid = self.writer.add_topic(node.resolve_topic_name(topic), type_name, qos_yaml)  # namespace, remaps
             reliability = ReliabilityPolicy.BEST_EFFORT if topic.startswith("command/") else ReliabilityPolicy.RELIABLE
             qos = QoSProfile(depth=100, reliability=reliability)
             self._subs.append(node.create_subscription(
                 message_class(type_name), topic, lambda data, cid=cid: self._write(cid, data), qos, raw=True))
         self._timer = node.create_timer(1.0, self.flush)
-
-    def _absolute(self, topic: str) -> str:
-        if topic.startswith("/"):
-            return topic
-        ns = self.node.get_namespace().rstrip("/")
-        return f"{ns}/{topic}"
 
     def _write(self, cid: int, data: bytes) -> None:
         if self.error:

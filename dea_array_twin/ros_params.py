@@ -11,12 +11,13 @@ slip_factor:=[1.0,0.95]``.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.parameter import Parameter
 
-from .config import ArrayConfig
+from .config import ArrayConfig, ConfigError
 
 #: Config fields that may change while the node runs (limits, checked per command).
 RUNTIME_FIELDS = ("max_displacement", "breakdown_field")
@@ -69,3 +70,20 @@ def declared_default(value: object) -> Any:
 def config_fields(cfg: ArrayConfig) -> dict[str, object]:
     """The config as ``{field: value}`` in declaration order."""
     return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
+
+
+def declare_number(node: Any, name: str, default: float, text: str, minimum: float = 0.0) -> float:
+    """Declare a read-only numeric parameter of ``node`` and return it as a finite float >= ``minimum``.
+
+    Integers are accepted too (``-p rate:=20``): the parameter is dynamically typed.
+
+    Raises
+    ------
+    ConfigError
+        The value is not a number, not finite or below ``minimum``; the message names it.
+    """
+    value = node.declare_parameter(name, default, ParameterDescriptor(
+        description=text, read_only=True, dynamic_typing=True)).value
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (minimum <= value < math.inf):
+        raise ConfigError(f"{name}: must be a number >= {minimum:g}, got {value!r}")
+    return float(value)

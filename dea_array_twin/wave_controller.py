@@ -39,17 +39,14 @@ from typing import Sequence
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 
 __all__ = ["Wave", "WaveSettings", "WaveEvent", "WaveController", "main"]
 
-COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-INPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-
 SETTLE, RISE, RETURN, DONE = "settle", "rise", "return", "done"
 
-from .node import unit_array
+from .node import OUTPUT_QOS, unit_array
+from .ros_params import declare_number
 from .rosmain import spin_node
 
 
@@ -249,25 +246,26 @@ class WaveController(Node):
     def __init__(self, **kwargs):
         super().__init__("wave_controller", **kwargs)
 
-        def param(name: str, default, text: str):
-            return self.declare_parameter(name, default, ParameterDescriptor(description=text,
-                                                                             read_only=True)).value
+        def param(name: str, default: float, text: str) -> float:
+            return declare_number(self, name, default, text, minimum=-math.inf)
 
+        cycles = self.declare_parameter("cycles", 0, ParameterDescriptor(
+            description="cycles before stopping at 0 m; 0 = forever", read_only=True)).value
         self.settings = WaveSettings(
             amplitude=param("amplitude", 0.008, "displacement each unit is pushed to [m]"),
             ramp_time=param("ramp_time", 1.0, "duration of each ramp up or down [s]"),
             trigger_fraction=param("trigger_fraction", 0.002,
                                    "relative capacitance rise of the next unit that passes the wave on [-]"),
-            cycles=param("cycles", 0, "cycles before stopping at 0 m; 0 = forever"),
-            settle_time=param("settle_time", 0.5, "time at 0 m before the baseline capacitances are taken [s]"))
+            cycles=cycles, settle_time=param("settle_time", 0.5,
+                                             "time at 0 m before the baseline capacitances are taken [s]"))
         self.rate = param("rate", 20.0, "command rate [Hz]")
-        if not (math.isfinite(self.rate) and self.rate > 0):
+        if not self.rate > 0:
             raise ValueError(f"rate: must be > 0 Hz, got {self.rate}")
         self.wave: Wave | None = None
         self.capacitance: np.ndarray | None = None
 
-        self.pub = self.create_publisher(Float64MultiArray, "command/displacement", COMMAND_QOS)
-        self.create_subscription(Float64MultiArray, "capacitance", self._on_capacitance, INPUT_QOS)
+        self.pub = self.create_publisher(Float64MultiArray, "command/displacement", OUTPUT_QOS)
+        self.create_subscription(Float64MultiArray, "capacitance", self._on_capacitance, OUTPUT_QOS)
         self.timer = self.create_timer(1.0 / self.rate, self._on_tick)
         s = self.settings
         self.get_logger().info(

@@ -128,8 +128,8 @@ def test_wave_controller_deflects_twin_units_one_after_another_by_capacitance_tr
     from dea_array_twin.testing import TwinHarness
 
     with TwinHarness(parameters={"update_rate": 50.0}) as h:
-        controller = WaveController(context=h.context, parameter_overrides=[
-            Parameter("rate", value=20.0), Parameter("ramp_time", value=0.5), Parameter("amplitude", value=A),
+        controller = WaveController(context=h.context, parameter_overrides=[  # an integer rate, as -p rate:=20
+            Parameter("rate", value=20), Parameter("ramp_time", value=0.5), Parameter("amplitude", value=A),
             Parameter("cycles", value=1)])
         h.executor.add_node(controller)
         try:
