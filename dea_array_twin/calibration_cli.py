@@ -36,11 +36,10 @@ from .bag import BagError
 from .calibration import PARAMETERS, POORLY_DETERMINED, YeohFit, fit_yeoh
 from .calibration_data import DEFAULT_SETTLE, DataError, load_curves
 from .config import ConfigError
-from .measured import MeasuredCurve, simulate
+from .measured import MeasuredCurve
 from .slip import SlipFit, fit_slip
 from .solver import ConvergenceError
 from .topics import parse_topic_map
-from .twin import ArrayTwin
 
 __all__ = ["add_arguments", "run_from_args"]
 
@@ -231,7 +230,6 @@ def run_from_args(args: argparse.Namespace) -> int:
     out = Path(args.out)
     paths = [out / "calibration.csv", out / "fit.yaml", out / "calibration.png"]
     try:
-        out.mkdir(parents=True, exist_ok=True)
         write_table(paths[0], result, curves)
         write_yaml(paths[1], result, curves)
         plot_fit(paths[2], result, curves)
@@ -254,11 +252,8 @@ def _run_slip(curves: list[MeasuredCurve], args: argparse.Namespace) -> int:
         result = fit_slip(curves, args.slip, max_evaluations=args.max_evaluations,
                           progress=lambda count, factors, cost: bar.update(1))
     print(slip_report(result))
-    before = [simulate(ArrayTwin(c.config.replace(slip_displacement=(), slip_factor=())), c)[1][:, c.unit]
-              for c in curves]
-    after = [simulate(ArrayTwin(result.config(c.config)), c)[1][:, c.unit] for c in curves]
+    before, after = result.model_dc_before, result.model_dc_after
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     with open(out / "slip.csv", "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["curve", "unit", "sample", "swept_unit", "swept_displacement_m", "measured_dC_F",
@@ -267,7 +262,7 @@ def _run_slip(curves: list[MeasuredCurve], args: argparse.Namespace) -> int:
             swept, m = _swept(curve), curve.capacitance
             for i in range(curve.n_samples):
                 writer.writerow([curve.name, curve.unit + 1, i, swept + 1, repr(float(curve.displacement[i, swept])),
-                                 repr(float(m[i] - m[0])), repr(float(b[i] - b[0])), repr(float(a[i] - a[0]))])
+                                 repr(float(m[i] - m[0])), repr(float(b[i])), repr(float(a[i]))])
     data = {"config": {"slip_displacement": list(result.knots), "slip_factor": [float(g) for g in result.factors]},
             "fit_percent": [{"curve": n, "no_slip": float(b), "fitted": float(a)}
                             for n, b, a in zip(result.names, result.fit_before, result.fit_after)],
@@ -307,8 +302,8 @@ def _plot_slip(path: Path, result: SlipFit, curves: Sequence[MeasuredCurve], bef
     for j, (curve, b, a, value) in enumerate(zip(curves, before, after, result.fit_after)):
         colour, x, m = f"C{j % 10}", curve.displacement[:, _swept(curve)] * 1e3, curve.capacitance
         ax.plot(x, (m - m[0]) * 1e12, "o", color=colour, ms=4, label=f"{curve.name}: FIT {value:.1f} %")
-        ax.plot(x, (a - a[0]) * 1e12, "-", color=colour)
-        ax.plot(x, (b - b[0]) * 1e12, ":", color=colour, alpha=0.6)
+        ax.plot(x, a * 1e12, "-", color=colour)
+        ax.plot(x, b * 1e12, ":", color=colour, alpha=0.6)
     ax.set(xlabel="displacement of the swept unit [mm]", ylabel="capacitance change [pF]",
            title="markers measured, lines with slip, dotted without")
     ax_gamma.plot(np.array(result.knots) * 1e3, result.factors, "s-k")

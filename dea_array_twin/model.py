@@ -84,6 +84,9 @@ class MembraneModel:
         #: the reference of ``delta_capacitance``; without slip (gamma = 1) even when
         #: a slip table is configured.
         self.flat_capacitance = cfg.permittivity / cfg.thickness * cfg.prestretch**4 * self.electrode_area
+        ref = mesh.nodes[mesh.elements[:, :3]]
+        e1, e2 = ref[:, 1] - ref[:, 0], ref[:, 2] - ref[:, 0]
+        self._corner_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
         #: Force scale [N] for convergence tests: t0 * c10 * D.
         self.force_scale = cfg.thickness * cfg.c10 * cfg.scaled("electrode_diameter")
         #: Length scale [m] for convergence tests: D.
@@ -166,6 +169,16 @@ class MembraneModel:
                 disk = self.mesh.indenter_nodes[k]
                 xs[disk, :2] = lp * self.mesh.nodes[disk]
                 xs[disk, 2] = displacement[k]
+
+    def corner_area_stretch(self, positions: np.ndarray) -> np.ndarray:
+        """Area ratio (deformed / reference) of each element's corner triangle [-], shape (n_elements,).
+
+        The flat-triangle view of the membrane that a visualisation draws; ``positions``
+        are the node positions, shape (n_nodes, 3) [m].
+        """
+        tri = positions[self.mesh.elements[:, :3]]
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        return area / self._corner_area
 
     def energy(self, point: PointState, voltage: np.ndarray) -> float:
         """Stored energy ``t0 sum_q w_q Psi`` [J] of a point state."""

@@ -262,16 +262,10 @@ class TwinNode(Node):
         res = self.result
         if res is None:
             return
-        mesh = self.twin.model.mesh
-        corners = mesh.elements[:, :3]
-        pts = res.positions[corners].reshape(-1, 3)
-        ref = mesh.nodes[corners]
-        e1, e2 = ref[:, 1] - ref[:, 0], ref[:, 2] - ref[:, 0]
-        area0 = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-        tri = res.positions[corners]
-        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-        lp2 = self.twin.config.prestretch ** 2
-        level = np.clip((area / area0 / lp2 - 1.0) / 1.0, 0.0, 1.0)  # 0 at pre-stretch, 1 at twice the area
+        model = self.twin.model
+        pts = res.positions[model.mesh.elements[:, :3]].reshape(-1, 3)
+        level = np.clip(model.corner_area_stretch(res.positions) / self.twin.config.prestretch ** 2 - 1.0, 0.0, 1.0)
+        # 0 at the pre-stretch, 1 at twice its area
         marker = Marker()
         marker.header.stamp = self.get_clock().now().to_msg()
         marker.header.frame_id = self.frame_id

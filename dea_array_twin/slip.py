@@ -58,6 +58,9 @@ class SlipFit:
         Per curve, the largest change of a driven unit's model force caused by the
         table, relative to the largest such force without it [-]; nan when no unit
         is driven.
+    model_dc_before, model_dc_after : tuple of ndarray, shape (k_j,)
+        The twin's capacitance change of each curve's measured unit from its first
+        sample [F], without slip and with the fitted table.
     cost : float
         ``sum over curves of (1 - FIT/100)^2`` with the fitted table.
     n_evaluations : int
@@ -76,6 +79,8 @@ class SlipFit:
     force_fit_before: np.ndarray
     force_fit_after: np.ndarray
     force_change: np.ndarray
+    model_dc_before: tuple[np.ndarray, ...]
+    model_dc_after: tuple[np.ndarray, ...]
     cost: float
     n_evaluations: int
     converged: bool
@@ -231,5 +236,7 @@ def fit_slip(curves: Sequence[MeasuredCurve], knots: Sequence[float], *, start: 
         fit_before=cap_fits(reference), fit_after=cap_fits(final),
         force_fit_before=force_fits(reference), force_fit_after=force_fits(final),
         force_change=np.array([_force_change(c, f1, f0) for c, (f1, _), (f0, _) in zip(curves, final, reference)]),
+        model_dc_before=tuple(_delta_c(c, cap) for c, (_, cap) in zip(curves, reference)),
+        model_dc_after=tuple(_delta_c(c, cap) for c, (_, cap) in zip(curves, final)),
         cost=float(np.sum(residuals_of(final) ** 2)), n_evaluations=len(runs), converged=converged,
         message=message)

@@ -231,3 +231,12 @@ def test_a_long_step_onto_an_unstable_branch_is_retried_to_the_stable_equilibriu
         [0.008, 0.0, 0.008], 0.0, ["driven"] * 3)
     assert jump.stable and jump.step_cuts >= 1
     np.testing.assert_allclose(jump.force, reference.force, rtol=1e-5, atol=1e-7)
+
+
+def test_corner_area_stretch_is_lp_squared_flat_and_grows_around_a_deflected_indenter(make_twin):
+    # What the membrane marker colours: deformed / reference area of each corner triangle.
+    twin = make_twin()
+    flat = twin.model.corner_area_stretch(twin.solve(np.zeros(3), 0.0, FREE_CENTRE).positions)
+    np.testing.assert_allclose(flat, 1.10**2, rtol=1e-12)
+    pushed = twin.model.corner_area_stretch(twin.solve([0, 0.015, 0], 0.0, FREE_CENTRE).positions)
+    assert pushed.max() > 1.5 * 1.10**2 and pushed.min() > 0.9 * 1.10**2

@@ -158,6 +158,8 @@ def test_fit_recovers_a_known_slip_table_from_noisy_capacitance():
     assert np.all((result.force_change > 0) & (result.force_change < 0.03))
     assert math.isnan(result.force_fit_before[1]) and result.force_fit_after[0] > result.force_fit_before[0]
     assert result.config(BASE).slip_factor == result.factors
+    cap = simulate(ArrayTwin(result.config(BASE)), curves[1])[1][:, 1]  # the model curve it reports
+    np.testing.assert_allclose(result.model_dc_after[1], cap - cap[0], rtol=1e-12, atol=1e-20)
 
 
 def test_fit_stops_at_the_evaluation_budget_with_the_best_table():
