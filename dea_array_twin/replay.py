@@ -132,13 +132,9 @@ class ReplayRun:
         return len(self.times_ns)
 
 
-def _warning_kind(text: str) -> str:
-    """A TwinResult warning without its numbers, for counting."""
-    if "wrinkle" in text:
-        return "compressive stress: the membrane would wrinkle"
-    if "breakdown" in text:
-        return "electric field above breakdown_field"
-    return text
+#: What each :attr:`.TwinResult.flags` entry means, for the replay's counts.
+_FLAG_TEXT = {"unstable": "equilibrium not a stable minimum", "wrinkled": "compressive stress: the membrane would "
+              "wrinkle", "field_exceeded": "electric field above breakdown_field"}
 
 
 def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tuple[int, str, Sequence[float]]],
@@ -196,8 +192,7 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
             except (ConvergenceError, ValueError) as exc:
                 error = f"solve failed at t = {t_s:.6f} s ({kind} command {values}): {exc}"
                 break
-            for text in res.warnings:
-                state_warnings[_warning_kind(text)] += 1
+            state_warnings.update(_FLAG_TEXT[flag] for flag in res.flags)
             rows["t"].append(int(log_time))
             rows["kind"].append(kind)
             rows["d"].append(held["displacement"].copy())

@@ -327,6 +327,30 @@ def shape_tasks(base: ArrayConfig, steps: int = 15) -> list[CurveTask]:
     return tasks
 
 
+def curves_tasks(base: ArrayConfig, steps: int = 15, stroke: float | None = None,
+                 neighbours: Sequence[float | str | None] = (None, "pre"),
+                 voltages: Sequence[float] | None = None) -> list[CurveTask]:
+    """Figures 12-16: every unit swept in turn, for each neighbour setting and voltage.
+
+    Parameters
+    ----------
+    stroke : float, optional
+        Final displacement [m]; default 0.75 D.
+    neighbours : sequence
+        ``None`` (free), ``"pre"`` (driven at 0.4 D) or a displacement [m] per setting.
+    voltages : sequence of float, optional
+        Voltages on the swept unit [V]; default 0 and the eq. 14 voltage.
+    """
+    diameter = base.scaled("electrode_diameter")
+    stroke = STROKE * diameter if stroke is None else stroke
+    voltages = [0.0, base.hv_voltage(CRITICAL_FIELD)] if voltages is None else voltages
+    settings = [PRE_DEFLECTION * diameter if nb == "pre" else nb for nb in neighbours]
+    if base.n_units == 1:  # no neighbours to set
+        settings = [None]
+    return [CurveTask(base, k, nb, v, stroke, steps, ("curves", "free" if nb is None else nb, f"{v:g} V"))
+            for k in range(base.n_units) for nb in settings for v in voltages]
+
+
 def geometry_row(cfg: ArrayConfig) -> dict[str, float]:
     """The geometry a sweep point actually ran with [m, scaled], for tables."""
     return {"L_m": cfg.scaled("length"), "H_m": cfg.scaled("width"), "D_m": cfg.scaled("electrode_diameter"),

@@ -215,14 +215,8 @@ def _shape(base: ArrayConfig, args: argparse.Namespace, out: Path, summary: list
 def _curves(base: ArrayConfig, args: argparse.Namespace, out: Path, summary: list[str]) -> bool:
     from .study_plots import plot_curves
 
-    diameter = base.scaled("electrode_diameter")
-    stroke = args.to if args.to is not None else study.STROKE * diameter
-    voltages = args.voltages if args.voltages is not None else [0.0, base.hv_voltage(study.CRITICAL_FIELD)]
-    neighbours = [study.PRE_DEFLECTION * diameter if nb == "pre" else nb for nb in args.neighbours]
-    if base.n_units == 1:  # no neighbours to set
-        neighbours = [None]
-    tasks = [study.CurveTask(base, k, nb, v, stroke, args.steps, ("curves", "free" if nb is None else nb, f"{v:g} V"))
-             for k in range(base.n_units) for nb in neighbours for v in voltages]
+    tasks = study.curves_tasks(base, args.steps, args.to, args.neighbours, args.voltages)
+    stroke = tasks[0].stroke
     results = _run(tasks, args, "curves")
     _write_csv(out / "curves.csv", *curve_rows(results))
     ok = all(isinstance(r, CurveResult) for r in results)

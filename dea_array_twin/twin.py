@@ -87,16 +87,18 @@ class TwinResult:
     solve_time: float
 
     @property
+    def flags(self) -> tuple[str, ...]:
+        """Which of ``"unstable"``, ``"wrinkled"``, ``"field_exceeded"`` apply (for counting)."""
+        return tuple(name for name, on in (("unstable", self.stable is False), ("wrinkled", self.wrinkled),
+                                           ("field_exceeded", self.field_exceeded)) if on)
+
+    @property
     def warnings(self) -> list[str]:
-        """Human-readable list of what is wrong with this state (empty if nothing)."""
-        out = []
-        if self.stable is False:
-            out.append("equilibrium is not a stable minimum (tangent not positive definite)")
-        if self.wrinkled:
-            out.append(f"compressive principal stress {self.min_principal_stress:.4g} Pa: membrane would wrinkle")
-        if self.field_exceeded:
-            out.append(f"electric field {self.peak_field.max() / 1e6:.4g} V/um exceeds the breakdown limit")
-        return out
+        """Human-readable list of what is wrong with this state (empty if nothing), one per flag."""
+        text = {"unstable": "equilibrium is not a stable minimum (tangent not positive definite)",
+                "wrinkled": f"compressive principal stress {self.min_principal_stress:.4g} Pa: membrane would wrinkle",
+                "field_exceeded": f"electric field {self.peak_field.max() / 1e6:.4g} V/um exceeds the breakdown limit"}
+        return [text[name] for name in self.flags]
 
     @property
     def ok(self) -> bool:

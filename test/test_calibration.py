@@ -20,9 +20,9 @@ from dea_array_twin.measured import MeasuredCurve, simulate
 from dea_array_twin.metrics import fit
 from dea_array_twin.replay import csv_header
 
-COARSE = {"mesh_size": 20e-3, "mesh_size_indenter": 2.5e-3, "mesh_size_electrode": 5e-3}
+from conftest import COARSE, FREE_CENTRE
+
 TABLE1 = np.array([0.18e6, 10.84e3, -0.11e3])  # c10, c20, c30 [Pa]
-FREE_CENTRE = ("free", "driven", "free")
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -70,13 +70,6 @@ def write_csv(path, curve: MeasuredCurve, extra_rows=(), comment="# synthetic sw
                              *force, *[""] * n])
         for row in extra_rows:
             writer.writerow(row)
-    return path
-
-
-@pytest.fixture
-def coarse_yaml(tmp_path):
-    path = tmp_path / "coarse.yaml"
-    path.write_text(yaml.safe_dump(COARSE))
     return path
 
 

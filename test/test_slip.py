@@ -14,9 +14,9 @@ from dea_array_twin.material import EPS0
 from dea_array_twin.measured import MeasuredCurve, simulate
 from dea_array_twin.slip import fit_slip
 
-COARSE = dict(mesh_size=20e-3, mesh_size_indenter=2.5e-3, mesh_size_electrode=5e-3)
+from conftest import COARSE, FREE_CENTRE
+
 BASE = ArrayConfig(**COARSE)
-FREE_CENTRE = ("free", "driven", "free")
 SWEEP = np.linspace(0.0, 0.015, 9)  # m
 KNOTS, TRUE_FACTORS = (0.0, 7.5e-3, 15e-3), (1.0, 0.96, 0.90)
 

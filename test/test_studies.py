@@ -15,12 +15,14 @@ import numpy as np
 import pytest
 
 from dea_array_twin import ArrayConfig, ArrayTwin, study, study_cli
+from dea_array_twin.geometry import unit_centres
 from dea_array_twin.parallel import ExecutorError, run_tasks
 from dea_array_twin.study import (
     SWEEPS, CurveResult, CurveTask, coupling_indices, coupling_tasks, index_rows, run_curve, shape_difference,
     shape_tasks, sweep_tasks, try_curve)
 
-COARSE = {"mesh_size": 20e-3, "mesh_size_indenter": 2.5e-3, "mesh_size_electrode": 5e-3}
+from conftest import COARSE
+
 STEPS = 3
 
 
@@ -128,7 +130,8 @@ def test_electrode_shape_at_equal_area_changes_the_curves_by_about_one_percent()
     by_key = {r.task.key[1:]: r for r in results}
     for case in ("lv", "hv"):
         force, cap = shape_difference(by_key[("circle", case)], by_key[("square", case)])
-        assert force < 0.01 and cap < 0.015, (case, force, cap)
+        # The shapes do differ (0.8-1.2 % in dC on this mesh), by about 1 %.
+        assert force < 0.01 and 0.004 < cap < 0.015, (case, force, cap)
 
 
 def test_wrinkling_at_the_eq14_voltage_and_lp_110_is_flagged_at_every_point_it_occurs():
@@ -144,11 +147,9 @@ def test_wrinkling_at_the_eq14_voltage_and_lp_110_is_flagged_at_every_point_it_o
 ])
 def test_the_measured_unit_is_central_and_its_neighbour_exists(rows, cols, expected):
     cfg = ArrayConfig(rows=rows, cols=cols, width=0.2, length=0.2)
-    centre, neighbour = expected
     assert study.measured_units(cfg) == expected
-    pitch = cfg.electrode_diameter + cfg.spacing  # row-major from the top left: one pitch apart
-    r0, c0, r1, c1 = centre // cols, centre % cols, neighbour // cols, neighbour % cols
-    assert abs(r0 - r1) * pitch + abs(c0 - c1) * pitch == pytest.approx(pitch)
+    centres = unit_centres(cfg)  # the neighbour is one pitch from the centre unit
+    assert np.linalg.norm(centres[expected[0]] - centres[expected[1]]) == pytest.approx(cfg.pitch)
 
 
 # ------------------------------------------------------------------- executors
@@ -200,18 +201,10 @@ def _study(argv: list[str]) -> int:
     return study_cli.run_from_args(parser.parse_args(argv))
 
 
-@pytest.fixture
-def coarse_yaml(tmp_path):
-    path = tmp_path / "coarse.yaml"
-    path.write_text("".join(f"{k}: {v}\n" for k, v in COARSE.items()))
-    return path
-
-
 def test_coupling_study_writes_csv_png_and_summary_with_the_library_numbers(tmp_path, coarse_yaml, capsys):
     out = tmp_path / "out"
     assert _study(["coupling", str(coarse_yaml), "--steps", str(STEPS), "--out", str(out)]) == 0
-    with open(out / "coupling.csv") as f:
-        row = next(csv.DictReader(line for line in f if not line.startswith("#")))
+    row = _index_table(out / "coupling.csv")[0]
     expected = coupling_indices({t.key[-1]: run_curve(t) for t in coupling_tasks(_base(), STEPS)})
     assert float(row["eta_f_lv"]) == pytest.approx(expected.eta_f_lv, abs=1e-12)
     assert float(row["eta_c"]) == pytest.approx(expected.eta_c, abs=1e-12)
@@ -232,12 +225,25 @@ def test_sweep_and_curves_studies_run_on_two_workers(tmp_path, coarse_yaml):
                    "--workers", "2", "--out", str(out)]) == 0
     text = (out / "sweep_spacing.csv").read_text()
     assert text.startswith("# parameter: spacing_m\n# geometry: electrode gap d varies")
+    written = _index_table(out / "sweep_spacing.csv")
+    expected = index_rows([try_curve(t) for t in sweep_tasks(SWEEPS["spacing"], _base(), [0.004, 0.012], 2)])
+    assert [float(r["value"]) for r in written] == [0.004, 0.012]
+    for row, ref in zip(written, expected):
+        for key in ("eta_f_lv", "eta_f_hv", "eta_c"):
+            assert float(row[key]) == pytest.approx(ref[key], abs=1e-12)
     assert (out / "sweep_spacing.png").stat().st_size > 10_000
     assert _study(["curves", str(coarse_yaml), "--neighbours", "free", "--voltages", "0", "--steps", "2",
                    "--out", str(out)]) == 0
     with open(out / "curves.csv") as f:
-        assert {r["swept_unit"] for r in csv.DictReader(f)} == {"1", "2", "3"}
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 3 * 3 and {r["swept_unit"] for r in rows} == {"1", "2", "3"}
+    assert {r["voltage_V"] for r in rows} == {"0.0"} and {r["neighbours_m"] for r in rows} == {"free"}
     assert (out / "curves.png").exists()
+
+
+def _index_table(path) -> list[dict]:
+    with open(path) as f:
+        return list(csv.DictReader(line for line in f if not line.startswith("#")))
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -279,7 +285,8 @@ def test_the_installed_command_runs_a_study_on_spawned_workers(tmp_path, coarse_
                            "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert "coupling: 5 curves in" in proc.stderr and "| base |" in proc.stdout
-    assert (tmp_path / "out" / "coupling.png").exists()
+    expected = coupling_indices({t.key[-1]: run_curve(t) for t in coupling_tasks(_base(), 2)})
+    assert float(_index_table(tmp_path / "out" / "coupling.csv")[0]["eta_c"]) == pytest.approx(expected.eta_c, abs=1e-12)
 
 
 def test_a_curve_without_equilibrium_is_recorded_and_the_study_exits_1(tmp_path, coarse_yaml, capsys):
