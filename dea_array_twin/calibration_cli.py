@@ -33,6 +33,7 @@ import numpy as np
 import yaml
 
 from .bag import BagError
+from .argtypes import add_topic_map, float_list, word_list
 from .calibration import PARAMETERS, POORLY_DETERMINED, YeohFit, fit_yeoh
 from .calibration_data import DEFAULT_SETTLE, DataError, load_curves
 from .config import ConfigError
@@ -133,51 +134,29 @@ def plot_fit(path: Path, result: YeohFit, curves: Sequence[MeasuredCurve]) -> No
 
 # ------------------------------------------------------------------------- CLI
 
-def _start(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.replace(",", " ").split()]
-    except ValueError:
-        values = []
-    if len(values) != 3:
-        raise argparse.ArgumentTypeError(f"expected c10,c20,c30 in Pa, got {text!r}")
-    return values
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``dea-twin calibrate`` options."""
     parser.add_argument("data", nargs="+", metavar="DATA",
                         help="CSV file (columns time_s, d1_m.., V1_V.., F1_N.., C1_F..: what 'dea-twin replay' "
                              "writes) or MCAP bag; FILE@CONFIG.yaml gives that file its own config")
     parser.add_argument("--config", help="config YAML (default: a bag's recorded config, else the paper's array)")
-    parser.add_argument("--modes", type=lambda t: t.replace(",", " ").split(),
+    parser.add_argument("--modes", type=word_list,
                         help="per-unit 'driven' or 'free', comma separated (default: a bag's recorded modes, "
                              "else all driven)")
-    parser.add_argument("--start", type=_start, metavar="C10,C20,C30",
+    parser.add_argument("--start", type=float_list(count=3, example="180e3,10e3,0"), metavar="C10,C20,C30",
                         help="starting coefficients [Pa] (default: those of the first curve's config)")
     parser.add_argument("--max-evaluations", type=int, default=400, metavar="N",
                         help="largest number of cost evaluations (each runs the twin on every curve; default 400)")
     parser.add_argument("--settle", type=float, default=DEFAULT_SETTLE, metavar="SECONDS",
                         help=f"bags: drop force messages less than this after a command change "
                              f"(default {DEFAULT_SETTLE})")
-    parser.add_argument("--topic-map", nargs="+", action="extend", default=[], metavar="OLD=NEW",
-                        help="bags: use recorded topic OLD as NEW (e.g. /rig/load=force)")
+    add_topic_map(parser, "/rig/load=force")
     parser.add_argument("--out", default=DEFAULT_OUT, metavar="DIR",
                         help=f"where calibration.csv, fit.yaml and calibration.png go (default {DEFAULT_OUT}/)")
-    parser.add_argument("--slip", type=_knots, metavar="D0,D1,...",
+    parser.add_argument("--slip", type=float_list(min_count=2, example="0,0.0075,0.015"), metavar="D0,D1,...",
                         help="instead of the Yeoh fit, fit the slip factors gamma of eq. 11 at these indenter "
                              "displacements [m] (gamma = 1 at the first) to the capacitance curves (C{k}_F "
                              "columns or capacitance topic); writes slip.csv, slip.yaml, slip.png")
-
-
-def _knots(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.replace(",", " ").split()]
-    except ValueError:
-        values = []
-    if len(values) < 2:
-        raise argparse.ArgumentTypeError(f"expected at least two displacements in m, e.g. 0,0.0075,0.015; "
-                                         f"got {text!r}")
-    return values
 
 
 def _log(text: str) -> None:

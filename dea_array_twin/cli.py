@@ -14,19 +14,12 @@ from typing import Sequence
 
 import numpy as np
 
+from .argtypes import float_list, word_list
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .model import DRIVEN, FREE
 from .solver import ConvergenceError
 from .twin import ArrayTwin, TwinResult
-
-
-def _floats(text: str) -> list[float]:
-    """Parse ``"0,0.015,0"`` (or space separated) into floats."""
-    try:
-        return [float(v) for v in text.replace(",", " ").split()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}") from None
 
 
 def _neighbours(text: str) -> str | float:
@@ -55,9 +48,9 @@ def build_parser() -> argparse.ArgumentParser:
     curve.add_argument("--json", action="store_true", help="print one JSON object (SI units)")
     solve = sub.add_parser("solve", help="one equilibrium state")
     solve.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
-    solve.add_argument("--displacement", type=_floats, help="per-unit displacement [m], comma separated")
-    solve.add_argument("--voltage", type=_floats, help="per-unit voltage [V], comma separated")
-    solve.add_argument("--modes", type=lambda t: t.replace(",", " ").split(),
+    solve.add_argument("--displacement", type=float_list(), help="per-unit displacement [m], comma separated")
+    solve.add_argument("--voltage", type=float_list(example="0,2730,0"), help="per-unit voltage [V], comma separated")
+    solve.add_argument("--modes", type=word_list,
                        help="per-unit mode, 'driven' or 'free', comma separated (default: all driven)")
     solve.add_argument("--json", action="store_true", help="print one JSON object (SI units)")
     run = sub.add_parser("run", help="start the twin ROS 2 node (like ros2 run dea_array_twin twin_node)")

@@ -16,6 +16,7 @@ backend switch), so it runs headless and inside notebooks alike.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import sys
 from collections import Counter
@@ -24,6 +25,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .argtypes import add_topic_map
 from .bag import Bag, BagError
 from .replay import REPLAY_METADATA
 from .topics import COMMANDS, output_topics, parse_topic_map, select_topic
@@ -176,15 +178,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``dea-twin plot`` options."""
     parser.add_argument("bag", help="an .mcap file or a rosbag2 directory (a recording or a replay output)")
     parser.add_argument("-o", "--output", help="image to write (default: <bag stem>.png next to the bag)")
-    parser.add_argument("--topic-map", nargs="+", action="extend", default=[], metavar="OLD=NEW",
-                        help="use recorded topic OLD as NEW (e.g. /rig/disp=command/displacement)")
+    add_topic_map(parser, "/rig/disp=command/displacement")
 
 
 def run_from_args(args: argparse.Namespace) -> int:
     """Run ``dea-twin plot`` for parsed arguments; return the exit code (0 ok, 2 bad input)."""
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
+    if importlib.util.find_spec("matplotlib") is None:
         print("dea-twin plot: error: needs matplotlib (pip install 'dea_array_twin[plot]')", file=sys.stderr)
         return 2
     try:

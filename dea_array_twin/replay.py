@@ -64,6 +64,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .argtypes import add_topic_map, word_list
 from .bag import Bag, BagError
 from .bag_config import metadata_from_config, resolve_config
 from .config import ConfigError
@@ -408,9 +409,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="config YAML (default: the bag's recorded config, else the paper's array)")
     parser.add_argument("--out", help="output base name: writes OUT.mcap and OUT.csv "
                                       "(default: <bag stem>_replay next to the bag)")
-    parser.add_argument("--topic-map", nargs="+", action="extend", default=[], metavar="OLD=NEW",
-                        help="use recorded topic OLD as NEW (e.g. /rig/disp=command/displacement)")
-    parser.add_argument("--modes", type=lambda t: t.replace(",", " ").split(),
+    add_topic_map(parser, "/rig/disp=command/displacement")
+    parser.add_argument("--modes", type=word_list,
                         help="per-unit 'driven' or 'free', comma separated (default: recorded, else all driven)")
     parser.add_argument("--fit-lag", type=float, default=None, metavar="SECONDS",
                         help="largest latency of recorded outputs behind their commands (default: three update "

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Sequence
 
 from . import study
+from .argtypes import float_list
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .parallel import ExecutorError, run_tasks
@@ -37,16 +38,6 @@ PAPER = {
     "scale": "all three indices unchanged; d falls below the air breakdown gap (1.1 mm) beyond k ~ 13",
     "shape": "circle and square electrodes of equal area give virtually the same curves",
 }
-
-
-def _floats(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.replace(",", " ").split()]
-    except ValueError:
-        values = []
-    if not values:
-        raise argparse.ArgumentTypeError(f"expected numbers separated by commas, got {text!r}")
-    return values
 
 
 def _neighbours(text: str) -> list[float | str | None]:
@@ -83,11 +74,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="comma-separated 'free', 'pre' (0.4 D) and/or pre-deflections [m] of the "
                              "other units (default: free,pre)")
     curves.add_argument("config", nargs="?", help=config_help)
-    curves.add_argument("--voltages", type=_floats, help="voltages on the swept unit [V] (default: 0 and eq. 14)")
+    curves.add_argument("--voltages", type=float_list(), help="voltages on the swept unit [V] (default: 0 and eq. 14)")
     sweep = kinds.add_parser("sweep", parents=[common], help="a parameter study of section 6")
     sweep.add_argument("name", choices=[*study.SWEEPS, "shape", "all"])
     sweep.add_argument("config", nargs="?", help=config_help)
-    sweep.add_argument("--values", type=_floats,
+    sweep.add_argument("--values", type=float_list(),
                        help="parameter values in SI (m, -, downscale factor; default: the paper's range)")
 
 
