@@ -231,6 +231,11 @@ class Bag:
         starts = [i.start_ns for i in self._infos if i.start_ns is not None]
         self.start_ns: int | None = min(starts) if starts else None
 
+    def output_path(self, suffix: str) -> Path:
+        """Where an output derived from this bag goes by default: next to it, ``<name><suffix>``."""
+        resolved = self.path.resolve()
+        return resolved.parent / f"{resolved.name if resolved.is_dir() else resolved.stem}{suffix}"
+
     def metadata(self, name: str) -> dict[str, str] | None:
         """The first metadata record called ``name`` (``{key: value}``), or None."""
         for info in self._infos:

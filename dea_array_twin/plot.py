@@ -189,11 +189,7 @@ def run_from_args(args: argparse.Namespace) -> int:
     try:
         bag = Bag(args.bag)
         series, end_s = load_series(bag, parse_topic_map(args.topic_map))
-        if args.output:
-            out = Path(args.output)
-        else:
-            resolved = bag.path.resolve()
-            out = resolved.parent / f"{resolved.name if resolved.is_dir() else resolved.stem}.png"
+        out = Path(args.output) if args.output else bag.output_path(".png")
         plot_series(series, end_s, out, title=bag.path.name)
     except BagError as exc:
         print(f"dea-twin plot: error: {exc}", file=sys.stderr)

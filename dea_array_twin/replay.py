@@ -82,7 +82,7 @@ from .topics import (
 )
 from .twin import ArrayTwin, command_error
 
-__all__ = ["ReplayRun", "compare_outputs", "fit", "replay_commands", "run_from_args"]
+__all__ = ["ReplayRun", "compare_outputs", "replay_commands", "run_from_args"]
 
 REPLAY_METADATA = "dea_array_twin_replay"
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -103,7 +103,7 @@ class ReplayRun:
         ``"displacement"`` or ``"voltage"``: which command triggered the solve.
     displacement, voltage, force, capacitance, centre_deflection : ndarray, shape (k, n)
         Held commands [m], [V] and outputs [N], [F], [m] after each solve.
-    initial_force, initial_capacitance, initial_centre_deflection : ndarray, shape (n,)
+    initial_force, initial_capacitance : ndarray, shape (n,)
         The state at the zero command, current before the first accepted command.
     skipped : Counter
         Rejected commands per kind.
@@ -122,7 +122,6 @@ class ReplayRun:
     centre_deflection: np.ndarray
     initial_force: np.ndarray
     initial_capacitance: np.ndarray
-    initial_centre_deflection: np.ndarray
     skipped: Counter = field(default_factory=Counter)
     state_warnings: Counter = field(default_factory=Counter)
     error: str | None = None
@@ -139,7 +138,7 @@ _FLAG_TEXT = {"unstable": "equilibrium not a stable minimum", "wrinkled": "compr
 
 
 def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tuple[int, str, Sequence[float]]],
-                    total: int | None = None, progress: bool = True, time_origin_ns: int = 0) -> ReplayRun:
+                    total: int | None = None, time_origin_ns: int = 0) -> ReplayRun:
     """Run the twin on commands in order, sample and hold: one solve per accepted command.
 
     Parameters
@@ -153,8 +152,6 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
         in log-time order.
     total
         Number of commands, for the progress bar.
-    progress
-        Show a tqdm bar on stderr (only on a terminal).
     time_origin_ns
         Log time shown as t = 0 in messages.
 
@@ -174,7 +171,7 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
     skipped: Counter = Counter()
     state_warnings: Counter = Counter()
     error = None
-    bar = tqdm(total=total, desc="replay", unit="cmd", file=sys.stderr, disable=None if progress else True)
+    bar = tqdm(total=total, desc="replay", unit="cmd", file=sys.stderr, disable=None)
     try:
         for log_time, kind, values in commands:
             bar.update(1)
@@ -211,7 +208,6 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
                      voltage=stack("v"), force=stack("f"), capacitance=stack("c"), centre_deflection=stack("z"),
                      initial_force=np.asarray(first.force, dtype=float),
                      initial_capacitance=np.asarray(first.capacitance, dtype=float),
-                     initial_centre_deflection=np.asarray(first.centre_deflection, dtype=float),
                      skipped=skipped, state_warnings=state_warnings, error=error)
 
 
@@ -255,7 +251,7 @@ def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.nda
 # ------------------------------------------------------------------- outputs
 
 
-def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]], frame_id: str = "dea_array") -> None:
+def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]]) -> None:
     """Write the replay as a ROS 2 MCAP bag (see the module docstring for the topics).
 
     Every sequence is filled (``serialize_message`` may append junk bytes to empty ones).
@@ -281,7 +277,7 @@ def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]], 
             states = JointState(name=names, position=[float(v) for v in run.centre_deflection[i]],
                                 velocity=[0.0] * n, effort=[float(v) for v in run.force[i]])
             states.header.stamp.sec, states.header.stamp.nanosec = divmod(t, 1_000_000_000)
-            states.header.frame_id = frame_id
+            states.header.frame_id = "dea_array"
             rec.write(ids["unit_states"], serialize_message(states), t)
 
 
@@ -303,13 +299,11 @@ def write_csv(path: Path, run: ReplayRun, origin_ns: int) -> None:
                              *run.force[i].tolist(), *run.capacitance[i].tolist()])
 
 
-def _output_base(bag_path: Path, out: str | None) -> Path:
+def _output_base(bag: Bag, out: str | None) -> Path:
     if out is not None:
         base = Path(out)
         return base.with_suffix("") if base.suffix in (".mcap", ".csv") else base
-    bag_path = bag_path.resolve()
-    stem = bag_path.name if bag_path.is_dir() else bag_path.stem
-    return bag_path.parent / f"{stem}_replay"
+    return bag.output_path("_replay")
 
 
 def _fit_table(fits: dict[str, np.ndarray], topics: dict[str, str], counts: dict[str, int]) -> str:
@@ -338,7 +332,7 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     cfg, modes, notes = resolve_config(bag, config_path, modes)
     for note in notes:
         _log(note)
-    base = _output_base(bag.path, out)
+    base = _output_base(bag, out)
     mcap_path, csv_path = base.with_name(base.name + ".mcap"), base.with_name(base.name + ".csv")
     if any(mcap_path.resolve() == p.resolve() for p in bag.files):
         raise BagError(f"the output {mcap_path} would overwrite the input; choose another --out")
@@ -392,7 +386,12 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
             for k, (t, v) in recorded.items() if t}
     if data:
         if fit_lag is None:
-            rate = float((bag.metadata(CONFIG_RECORD) or {}).get("update_rate", 0.0) or 0.0)
+            recorded_rate = (bag.metadata(CONFIG_RECORD) or {}).get("update_rate", "0")
+            try:
+                rate = float(recorded_rate)
+            except ValueError:
+                _log(f"warning: recorded update_rate {recorded_rate!r} is not a number; pass --fit-lag")
+                rate = 0.0
             fit_lag = 3.0 / rate if rate > 0 else 0.0
         _log(f"FIT pairs each recorded output with a replayed state current up to {fit_lag * 1e3:.1f} ms before "
              "it (three update periods of the recording node; --fit-lag to change)")

@@ -51,7 +51,7 @@ def _plays(name: str, role: str) -> bool:
 
 
 def select_topic(topics: dict[str, str], role: str, topic_map: dict[str, str] | None = None,
-                 namespace: str | None = None, type_name: str = FLOAT_ARRAY) -> str | None:
+                 namespace: str | None = None) -> str | None:
     """The recorded topic that plays ``role`` (e.g. ``command/displacement``), or None.
 
     Topics mapped to the role with ``--topic-map`` come first; otherwise any topic whose
@@ -76,8 +76,8 @@ def select_topic(topics: dict[str, str], role: str, topic_map: dict[str, str] | 
     if not candidates:
         return None
     topic = candidates[0]
-    if topics[topic] and topics[topic] != type_name:
-        raise BagError(f"topic {topic} has type {topics[topic]}, expected {type_name} for {role}")
+    if topics[topic] and topics[topic] != FLOAT_ARRAY:
+        raise BagError(f"topic {topic} has type {topics[topic]}, expected {FLOAT_ARRAY} for {role}")
     return topic
 
 

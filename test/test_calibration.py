@@ -205,15 +205,6 @@ def test_singular_normal_matrix_gives_infinite_standard_errors():
 
 # ------------------------------------------------------------------------ FIT
 
-def test_fit_is_100_for_a_perfect_model_0_for_the_mean_and_follows_eq_12():
-    x = np.array([1.0, 2.0, 3.0, 4.0])
-    assert fit(x, x) == 100.0
-    assert fit(x, np.full(4, 2.5)) == pytest.approx(0.0, abs=1e-12)
-    # ||x - xm|| = 1, ||x - mean x|| = sqrt(1.5^2 + 0.5^2 + 0.5^2 + 1.5^2) = sqrt(5)
-    assert fit(x, [1.0, 2.0, 3.0, 5.0]) == pytest.approx(100 * (1 - 1 / math.sqrt(5)), rel=1e-12)
-    assert fit(x, [1.0, 2.0, 3.0, 5.0]) == pytest.approx(55.27864045, rel=1e-9)
-
-
 # ------------------------------------------------------------------ bad data
 
 @pytest.mark.parametrize("name, text, expected", [

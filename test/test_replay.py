@@ -31,10 +31,12 @@ from sensor_msgs.msg import JointState  # noqa: E402
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String  # noqa: E402
 
 from dea_array_twin import ArrayConfig, ArrayTwin  # noqa: E402
+from dea_array_twin.bag import Bag  # noqa: E402
 from dea_array_twin.bag_config import metadata_from_config  # noqa: E402
 from dea_array_twin.cli import main  # noqa: E402
 from dea_array_twin.mcap_writer import Ros2McapWriter  # noqa: E402
-from dea_array_twin.replay import fit  # noqa: E402
+from dea_array_twin.metrics import fit  # noqa: E402
+from dea_array_twin.plot import load_series  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FLOATS, STATES, STRING = "std_msgs/msg/Float64MultiArray", "sensor_msgs/msg/JointState", "std_msgs/msg/String"
@@ -114,11 +116,12 @@ def read_topic(path: Path, topic: str):
 
 # -------------------------------------------------------------------------- FIT
 
-def test_fit_is_100_for_a_perfect_model_and_0_for_the_mean():
-    x = np.array([1.0, 3.0, 2.0, 5.0])
-    assert fit(x, x) == pytest.approx(100.0)
-    assert fit(x, np.full_like(x, x.mean())) == pytest.approx(0.0, abs=1e-12)
-    assert fit(x, x + 0.01) < 100.0
+def test_fit_is_100_for_a_perfect_model_0_for_the_mean_and_follows_eq_12():
+    x = np.array([1.0, 2.0, 3.0, 4.0])
+    assert fit(x, x) == 100.0
+    assert fit(x, np.full(4, 2.5)) == pytest.approx(0.0, abs=1e-12)
+    # ||x - xm|| = 1, ||x - mean x|| = sqrt(1.5^2 + 0.5^2 + 0.5^2 + 1.5^2) = sqrt(5)
+    assert fit(x, [1.0, 2.0, 3.0, 5.0]) == pytest.approx(100 * (1 - 1 / math.sqrt(5)), rel=1e-12)
     assert fit(x, -x) < 0.0  # worse than the mean
 
 
@@ -303,6 +306,12 @@ def test_plot_writes_a_png_of_a_recording_and_of_a_replay(tmp_path, capsys):
     assert main(["replay", str(bag)]) == 0
     assert main(["plot", str(tmp_path / "run_replay.mcap")]) == 0  # default name: next to the bag
     assert (tmp_path / "run_replay.png").stat().st_size > 10_000
+    # What was drawn: the replay's forces at the replay's times, as its CSV holds them.
+    series, _ = load_series(Bag(tmp_path / "run_replay.mcap"))
+    with open(tmp_path / "run_replay.csv") as f:
+        rows = list(csv.DictReader(f))
+    np.testing.assert_allclose(series["force"].time_s, [float(r["time_s"]) for r in rows], atol=1e-9)
+    np.testing.assert_allclose(series["force"].values, [[float(r[f"F{k}_N"]) for k in (1, 2, 3)] for r in rows])
     capsys.readouterr()
 
 
