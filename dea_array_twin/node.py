@@ -35,7 +35,7 @@ from visualization_msgs.msg import Marker
 from .config import ArrayConfig, ConfigError
 from .configfile import load_config
 from .model import DRIVEN, check_modes
-from .ros_params import RUNTIME_FIELDS, config_descriptor, config_fields, declare_number, declared_default
+from .ros_params import RUNTIME_FIELDS, config_descriptor, declare_number, declared_default
 from .rosmain import spin_node
 from .solver import ConvergenceError
 from .twin import ArrayTwin, TwinResult, command_error
@@ -119,7 +119,7 @@ class TwinNode(Node):
                                                    read_only=True)).value
         base = load_config(path or None)
         values = {}
-        for name, default in config_fields(base).items():
+        for name, default in base.to_dict().items():
             value = self.declare_parameter(name, declared_default(default), config_descriptor(name, default)).value
             values[name] = default if value is None else value  # None: an unset (empty) table
         return ArrayConfig.from_dict(values)

@@ -10,14 +10,13 @@ slip_factor:=[1.0,0.95]``.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any
 
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.parameter import Parameter
 
-from .config import ArrayConfig, ConfigError
+from .config import ConfigError
 
 #: Config fields that may change while the node runs (limits, checked per command).
 RUNTIME_FIELDS = ("max_displacement", "breakdown_field")
@@ -40,7 +39,7 @@ def config_descriptor(name: str, value: object) -> ParameterDescriptor:
     if name in _RANGES:
         lo, hi = _RANGES[name]
         desc.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
-    if isinstance(value, tuple):
+    if isinstance(value, list):
         desc.type = ParameterType.PARAMETER_DOUBLE_ARRAY
     elif isinstance(value, bool):
         desc.type = ParameterType.PARAMETER_BOOL
@@ -57,19 +56,15 @@ def config_descriptor(name: str, value: object) -> ParameterDescriptor:
 def declared_default(value: object) -> Any:
     """The default to declare a config field's parameter with (``declare_parameter``'s value).
 
-    A table becomes a list of float (a DOUBLE_ARRAY); an empty one the type
+    ``value`` is from :meth:`.ArrayConfig.to_dict`.  A table is a list of float (a
+    DOUBLE_ARRAY); an empty one becomes the type
     ``Parameter.Type.DOUBLE_ARRAY`` alone, which declares the parameter unset:
     rclpy infers ``[]`` as BYTE_ARRAY, and a YAML or ``-p`` list of doubles would
     then be rejected as the wrong type.  Unset reads back as None.
     """
-    if isinstance(value, tuple):
-        return list(value) if value else Parameter.Type.DOUBLE_ARRAY
+    if isinstance(value, list) and not value:
+        return Parameter.Type.DOUBLE_ARRAY
     return value
-
-
-def config_fields(cfg: ArrayConfig) -> dict[str, object]:
-    """The config as ``{field: value}`` in declaration order."""
-    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
 
 
 def declare_number(node: Any, name: str, default: float, text: str, minimum: float = 0.0) -> float:
