@@ -23,6 +23,8 @@ from .model import DRIVEN, check_modes
 __all__ = ["config_from_metadata", "metadata_from_config", "resolve_config"]
 
 NON_CONFIG_KEYS = ("unit_modes", "update_rate")
+#: Metadata record of a ``dea-twin replay`` output: its source bag and time origin.
+REPLAY_METADATA = "dea_array_twin_replay"
 
 
 def config_from_metadata(values: dict[str, str]) -> tuple[ArrayConfig, list[str] | None, list[str]]:

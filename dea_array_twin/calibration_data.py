@@ -210,7 +210,7 @@ def read_bag(path: str | Path, config_path: str | None, modes: Sequence[str] | N
         A unit whose signal is constant or NaN (a rig measuring only some units) is
         skipped with a note.
     """
-    from .plot import load_series
+    from .series import load_series
 
     bag = Bag(path)
     cfg, modes, notes = resolve_config(bag, config_path, modes)

@@ -4,10 +4,8 @@ Three stacked axes over time, one colour per unit: the commands (displacement [m
 solid, left scale; voltage [V], dashed, right scale; drawn as held values), the
 forces [N] and the capacitances [pF].  Reads any bag :class:`~.bag.Bag` opens: a
 recording of the twin node, a rig's command bag (outputs then empty) or the MCAP
-written by ``dea-twin replay``.  Topics are chosen as ``replay`` chooses them
-(``--topic-map`` included).  Time runs from the bag's first message, or from the
-``time_origin_ns`` a replay output records, so the plot's time axis matches the
-replay's CSV.
+written by ``dea-twin replay``, through :func:`.series.load_series` (topics chosen
+as ``replay`` chooses them; times matching the replay's CSV).
 
 Uses matplotlib's object-oriented API on the Agg canvas (no pyplot, no global
 backend switch), so it runs headless and inside notebooks alike.
@@ -17,89 +15,21 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import math
 import sys
-from collections import Counter
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
 from .argtypes import add_topic_map
 from .bag import Bag, BagError
-from .replay import REPLAY_METADATA
-from .topics import COMMANDS, output_topics, parse_topic_map, select_topic
+from .series import Series, load_series
+from .topics import parse_topic_map
 
-__all__ = ["Series", "add_arguments", "load_series", "plot_series", "run_from_args"]
+__all__ = ["add_arguments", "plot_series", "run_from_args"]
 
 #: Channel -> (axis label, factor from SI to the plotted unit).
 _UNITS = {"displacement": ("displacement [mm]", 1e3), "voltage": ("voltage [V]", 1.0),
           "force": ("force [N]", 1.0), "capacitance": ("capacitance [pF]", 1e12)}
-
-
-class Series(NamedTuple):
-    """One channel of a bag: times [s] from the origin and values, shape (m, n_units), SI units."""
-
-    topic: str
-    time_s: np.ndarray
-    values: np.ndarray
-
-
-def load_series(bag: Bag, topic_map: dict[str, str] | None = None) -> tuple[dict[str, Series], float]:
-    """Read the command and output channels of a bag.
-
-    Messages the twin would reject are dropped: another length than most messages of the
-    channel, or NaN/inf in a command.
-
-    Returns
-    -------
-    series : dict
-        Channel (``displacement``, ``voltage``, ``force``, ``capacitance``) -> :class:`Series`;
-        only the channels present.
-    end_s : float
-        Time of the last message read [s], where held commands are drawn to.
-
-    Raises
-    ------
-    BagError
-        No command and no output topic in the bag, or an ambiguous one (see ``--topic-map``).
-    """
-    commands = {kind: topic for kind in COMMANDS
-                if (topic := select_topic(bag.topics, f"command/{kind}", topic_map)) is not None}
-    outputs = output_topics(bag, commands, topic_map)
-    if not commands and not outputs:
-        raise BagError(f"{bag.path}: nothing to plot (no topics ending with command/displacement, "
-                       f"command/voltage, force or capacitance). Topics present:\n{bag.describe_topics()}")
-    topics = {**commands, **outputs}
-    origin = bag.start_ns
-    replay_info = bag.metadata(REPLAY_METADATA) or {}
-    try:
-        origin = int(replay_info["time_origin_ns"])
-    except (KeyError, ValueError):
-        pass
-    kind_of = {topic: kind for kind, topic in topics.items()}
-    times: dict[str, list[int]] = {k: [] for k in topics}
-    values: dict[str, list[list[float]]] = {k: [] for k in topics}
-    last = None
-    for msg in bag.messages(topics.values(), decode=True):
-        if origin is None:
-            origin = msg.log_time_ns
-        kind = kind_of[msg.topic]
-        times[kind].append(msg.log_time_ns)
-        values[kind].append(list(msg.decoded.data))
-        last = msg.log_time_ns
-    out = {}
-    for kind, topic in topics.items():
-        lengths = Counter(len(v) for v in values[kind])
-        n = lengths.most_common(1)[0][0] if lengths else 0
-        # what the twin would reject: another length than most messages, NaN/inf in a command
-        keep = [i for i, v in enumerate(values[kind])
-                if n and len(v) == n and (kind in ("force", "capacitance") or all(map(math.isfinite, v)))]
-        if keep:
-            t = (np.array([times[kind][i] for i in keep], dtype=np.int64) - origin) * 1e-9
-            out[kind] = Series(topic, t, np.array([values[kind][i] for i in keep], dtype=float))
-    end_s = 0.0 if last is None or origin is None else (last - origin) * 1e-9
-    return out, end_s
 
 
 def plot_series(series: dict[str, Series], end_s: float, path: str | Path, title: str = "") -> Path:

@@ -66,7 +66,7 @@ import numpy as np
 
 from .argtypes import add_topic_map, word_list
 from .bag import Bag, BagError
-from .bag_config import metadata_from_config, resolve_config
+from .bag_config import REPLAY_METADATA, metadata_from_config, resolve_config
 from .config import ConfigError
 from .mcap_writer import CONFIG_RECORD
 from .metrics import fit
@@ -84,7 +84,6 @@ from .twin import ArrayTwin, command_error
 
 __all__ = ["ReplayRun", "compare_outputs", "replay_commands", "run_from_args"]
 
-REPLAY_METADATA = "dea_array_twin_replay"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 _MAX_LISTED_WARNINGS = 5
 

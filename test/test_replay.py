@@ -36,7 +36,7 @@ from dea_array_twin.bag_config import metadata_from_config  # noqa: E402
 from dea_array_twin.cli import main  # noqa: E402
 from dea_array_twin.mcap_writer import Ros2McapWriter  # noqa: E402
 from dea_array_twin.metrics import fit  # noqa: E402
-from dea_array_twin.plot import load_series  # noqa: E402
+from dea_array_twin.series import load_series  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 FLOATS, STATES, STRING = "std_msgs/msg/Float64MultiArray", "sensor_msgs/msg/JointState", "std_msgs/msg/String"
