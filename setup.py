@@ -22,8 +22,8 @@ except ImportError:
 # and its real script in lib/PKG/ is not overwritten.
 console_scripts = {
     'dea-twin': 'dea_array_twin.cli:main',
-    'twin_node': 'dea_array_twin.node:main',
-    'wave_controller': 'dea_array_twin.wave_controller:main',
+    'twin_node': 'dea_array_twin.ros.node:main',
+    'wave_controller': 'dea_array_twin.ros.wave_controller:main',
 }
 
 LAUNCHER = """#!/bin/sh
@@ -67,7 +67,7 @@ setup(
     # ROS wheels must never be pulled in over a full ROS install.
     install_requires=['numpy', 'scipy', 'gmsh', 'pyyaml', 'tqdm'],
     extras_require={
-        'test': ['pytest'],
+        'test': ['pytest', 'import-linter>=2.1', 'ruff'],
         'mcap': ['mcap>=1.5', 'mcap-ros2-support', 'rosbags'],
         'plot': ['matplotlib'],
         'cluster': ['dask[distributed]>=2024.1'],

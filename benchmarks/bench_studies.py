@@ -18,9 +18,8 @@ import time
 import numpy as np
 
 from dea_array_twin import ArrayTwin, load_config
-from dea_array_twin.measured import MeasuredCurve, simulate
-from dea_array_twin.parallel import run_tasks
-from dea_array_twin.study import coupling_indices, coupling_tasks, run_curve
+from dea_array_twin.calibration import MeasuredCurve, simulate
+from dea_array_twin.studies import coupling_indices, coupling_tasks, run_curve, run_tasks
 
 
 def main() -> None:

@@ -1,18 +1,26 @@
 """Finite-element digital twin of soft arrays of dielectric-elastomer transducers.
 
-The numerical core (this package's top level) needs only numpy, scipy and gmsh::
+The public API is flat and needs only numpy, scipy and gmsh::
 
     from dea_array_twin import ArrayConfig, ArrayTwin
     twin = ArrayTwin(ArrayConfig(prestretch=1.2))
     res = twin.solve(displacement=[0, 0.015, 0], modes=["free", "driven", "free"])
     res.force, res.capacitance            # N, F per unit
+
+The subpackages, lowest layer first (each may import only those below it; checked by
+``lint-imports``, contracts in ``.importlinter``):
+
+* :mod:`.model`: the numerical core (config, mesh, material, FE assembly, solver, twin);
+* :mod:`.configfile`: the config from YAML files;
+* :mod:`.bag`: ROS 2-profile MCAP files: writing, reading, recovery, time series;
+* :mod:`.ros`: the ROS 2 node, its recorder, the test harness, example controllers;
+* :mod:`.replay`, :mod:`.studies`, :mod:`.calibration`: re-simulating bags, the
+  paper's studies, fitting the material model (independent of each other);
+* :mod:`.cli`: the ``dea-twin`` command.
 """
 
-from .config import ArrayConfig, ConfigError
 from .configfile import load_config
-from .model import DRIVEN, FREE
-from .solver import ConvergenceError, NewtonSettings
-from .twin import ArrayTwin, TwinResult
+from .model import DRIVEN, FREE, ArrayConfig, ArrayTwin, ConfigError, ConvergenceError, NewtonSettings, TwinResult
 
 __all__ = ["ArrayConfig", "ArrayTwin", "ConfigError", "ConvergenceError", "DRIVEN", "FREE", "NewtonSettings",
            "TwinResult", "load_config"]

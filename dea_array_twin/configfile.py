@@ -1,4 +1,4 @@
-"""Reading :class:`~.config.ArrayConfig` from YAML files."""
+"""Reading :class:`~dea_array_twin.model.config.ArrayConfig` from YAML files."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import yaml
 
-from .config import ArrayConfig, ConfigError
+from .model.config import ArrayConfig, ConfigError
 
 
 def load_config(path: str | Path | None) -> ArrayConfig:

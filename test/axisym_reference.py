@@ -569,8 +569,9 @@ def _fe_p1(d, voltage, prestretch, n, *, frame_radius=25e-3, electrode_radius=10
     x[0::2] = lp * R[1:-1]
     shape = np.log(R[1:-1]) / np.log(R[0])
     nd = max(1, int(math.ceil(abs(d) / 1e-3)))
+    dh_prev = None
     for dh in np.linspace(dh_end / nd, dh_end, nd):
-        x[1::2] = dh * shape if dh == dh_end / nd else x[1::2] * dh / dh_prev
+        x[1::2] = dh * shape if dh_prev is None else x[1::2] * dh / dh_prev
         x = newton(x, dh, 0.0)
         dh_prev = dh
     e_full = EPS0 * epsr * (voltage / thickness) ** 2 / c10

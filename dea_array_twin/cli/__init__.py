@@ -1,0 +1,11 @@
+"""The ``dea-twin`` command: one module per sub-command over the layers below.
+
+:mod:`.main` holds the parser, ``curve``, ``solve``, ``run``, ``demo`` and
+``bag-recover``; :mod:`.study`, :mod:`.calibrate`, :mod:`.replay` and :mod:`.plot` the
+options, output files and exit codes of the tools of those names; :mod:`.argtypes` the
+argument types they share.  The top layer: it may import everything, nothing imports it.
+"""
+
+from .main import main
+
+__all__ = ["main"]

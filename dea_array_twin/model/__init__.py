@@ -1,0 +1,20 @@
+"""The numerical core: the membrane model of section 4 of the paper and the twin built on it.
+
+Holds the typed configuration (:mod:`.config`), the reference geometry and gmsh mesh
+(:mod:`.geometry`, :mod:`.mesh`), the Yeoh plus electrostatic material
+(:mod:`.material`), elements and vectorised assembly (:mod:`.elements`,
+:mod:`.assembly`), the boundary conditions and outputs of one array
+(:mod:`.membrane`), the Newton solver (:mod:`.solver`), the twin with its warm state
+(:mod:`.twin`) and the FIT metric (:mod:`.metrics`).  Arrays in, arrays out: it
+imports numpy, scipy and gmsh only, never rclpy, mcap, matplotlib, dask or YAML, and
+reads or writes no files, so a designer can use it from a notebook and every layer
+above is a thin adapter.
+"""
+
+from .config import ArrayConfig, ConfigError
+from .membrane import DRIVEN, FREE, MembraneModel, check_modes
+from .solver import ConvergenceError, NewtonSettings
+from .twin import ArrayTwin, TwinResult, command_error
+
+__all__ = ["ArrayConfig", "ArrayTwin", "ConfigError", "ConvergenceError", "DRIVEN", "FREE", "MembraneModel",
+           "NewtonSettings", "TwinResult", "check_modes", "command_error"]

@@ -1,0 +1,223 @@
+"""The discrete membrane model of one array: mesh, material and boundary conditions.
+
+A :class:`MembraneModel` binds a configuration to its mesh and quadrature data and
+answers the questions the solver asks: which dofs are prescribed for a set of unit
+modes, their values for given indenter displacements (eqs. 8 and 9), the Maxwell
+coefficient of every element for given voltages (eq. 5), and the outputs of a state
+(eqs. 7 and 10).  The optional slip correction of the frame (eq. 11) enters through
+:meth:`MembraneModel.edge_stretch`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from .assembly import Discretisation, PointState, SparsePattern, discretise
+from .config import ArrayConfig
+from .material import energy_density, principal_cauchy_stresses
+from .mesh import Mesh, build_mesh, geometry_key
+
+DRIVEN, FREE = "driven", "free"
+MODES = (DRIVEN, FREE)
+
+
+def check_modes(modes: Sequence[str], n_units: int) -> tuple[str, ...]:
+    """``modes`` as a tuple if it holds ``n_units`` values out of :data:`MODES`; else ValueError."""
+    modes = tuple(modes)
+    if len(modes) != n_units or any(m not in MODES for m in modes):
+        raise ValueError(f"modes must be {n_units} values out of {MODES}, got {list(modes)}")
+    return modes
+
+#: Sparsity patterns per mesh geometry: they depend on the connectivity only (not on
+#: scale or material), and building one costs ~40 ms, so twins of one geometry with
+#: other materials or scales (calibration, studies) share it.
+_PATTERNS: dict[tuple, SparsePattern] = {}
+_PATTERNS_SIZE = 32
+
+
+def _pattern(cfg: ArrayConfig, disc: Discretisation) -> SparsePattern:
+    key = geometry_key(cfg)
+    if key not in _PATTERNS:
+        if len(_PATTERNS) >= _PATTERNS_SIZE:
+            _PATTERNS.pop(next(iter(_PATTERNS)))
+        _PATTERNS[key] = SparsePattern(disc.dofs, disc.n_dofs)
+    return _PATTERNS[key]
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """Per-unit outputs of an equilibrium state (SI units)."""
+
+    force: np.ndarray
+    capacitance: np.ndarray
+    centre_deflection: np.ndarray
+    peak_field: np.ndarray
+    min_principal_stress: float
+
+
+class MembraneModel:
+    """Mesh, quadrature and boundary conditions of the array described by ``cfg``.
+
+    Parameters
+    ----------
+    cfg : ArrayConfig
+        The array.  Its mesh is built (or taken from the cache) here.
+    """
+
+    def __init__(self, cfg: ArrayConfig):
+        self.cfg = cfg
+        self.mesh: Mesh = build_mesh(cfg)
+        self.disc: Discretisation = discretise(self.mesh)
+        self.pattern = _pattern(cfg, self.disc)
+        self.yeoh = cfg.yeoh
+        self.thickness = cfg.thickness
+        mesh = self.mesh
+        self._unit_elements = [np.flatnonzero(mesh.element_unit == k) for k in range(cfg.n_units)]
+        self._disk_elements = [np.flatnonzero((mesh.element_unit == k) & mesh.element_in_indenter)
+                               for k in range(cfg.n_units)]
+        #: Reference area [m^2] of each unit's meshed electrode.
+        self.electrode_area = np.array([self.disc.weight[e].sum() for e in self._unit_elements])
+        #: Capacitance [F] of each unit in the flat pre-stretched state (det C = lp^4),
+        #: the reference of ``delta_capacitance``; without slip (gamma = 1) even when
+        #: a slip table is configured.
+        self.flat_capacitance = cfg.permittivity / cfg.thickness * cfg.prestretch**4 * self.electrode_area
+        ref = mesh.nodes[mesh.elements[:, :3]]
+        e1, e2 = ref[:, 1] - ref[:, 0], ref[:, 2] - ref[:, 0]
+        self._corner_area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        #: Force scale [N] for convergence tests: t0 * c10 * D.
+        self.force_scale = cfg.thickness * cfg.c10 * cfg.scaled("electrode_diameter")
+        #: Length scale [m] for convergence tests: D.
+        self.length_scale = cfg.scaled("electrode_diameter")
+
+    @property
+    def n_units(self) -> int:
+        """Number of units."""
+        return self.cfg.n_units
+
+    def flat_state(self) -> np.ndarray:
+        """Positions of the flat pre-stretched membrane, ``x = lp X, z = 0`` (shape (n_dofs,))."""
+        x = np.zeros((self.mesh.n_nodes, 3))
+        x[:, :2] = self.cfg.prestretch * self.mesh.nodes
+        return x.ravel()
+
+    def check_modes(self, modes: Sequence[str]) -> tuple[str, ...]:
+        """Validate a per-unit mode sequence and return it as a tuple."""
+        return check_modes(modes, self.n_units)
+
+    def prescribed_dofs(self, modes: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+        """Sorted prescribed and free dof numbers for the given unit modes.
+
+        Prescribed: every dof of the frame nodes (eq. 8) and of the indenter disk of
+        each driven unit (eq. 9).
+        """
+        nodes = [self.mesh.frame_nodes] + [self.mesh.indenter_nodes[k] for k, m in enumerate(modes) if m == DRIVEN]
+        fixed = np.unique(np.concatenate(nodes))
+        dofs = (3 * fixed[:, None] + np.arange(3)).ravel()
+        mask = np.ones(self.disc.n_dofs, dtype=bool)
+        mask[dofs] = False
+        return dofs, np.flatnonzero(mask)
+
+    def edge_stretch(self, modes: Sequence[str], displacement: np.ndarray) -> float:
+        """Stretch of the frame along X [-]: ``lp``, or ``1 + (lp - 1) gamma`` with slip (eq. 11).
+
+        Eq. 11 scales the X pre-stretch displacement on the outer edge by
+        ``gamma(d_k)``, the configured table (:meth:`.ArrayConfig~dea_array_twin.calibration.slip`).  The paper
+        only ever moves one unit; with several, gamma is taken at the largest
+        ``|d_k|`` over the driven units (0 when none is driven): the frame slips as
+        far as the deepest indentation pulls it, and a downward indentation pulls
+        as much as the mirror upward one.  Without a table this is exactly ``lp``.
+
+        Parameters
+        ----------
+        modes : sequence of str
+            ``"driven"`` or ``"free"`` per unit.
+        displacement : ndarray, shape (n_units,)
+            Indenter displacements d_k [m] (free units ignored).
+        """
+        cfg = self.cfg
+        if not cfg.slip_factor:
+            return cfg.prestretch
+        depth = max((abs(float(d)) for d, m in zip(displacement, modes) if m == DRIVEN), default=0.0)
+        return 1.0 + (cfg.prestretch - 1.0) * cfg.slip(depth)
+
+    def frame_positions(self, modes: Sequence[str], displacement: np.ndarray) -> np.ndarray:
+        """Prescribed positions ``(lx X, lp Y, 0)`` of the frame nodes [m], shape (n_frame, 3).
+
+        ``lx`` is :meth:`edge_stretch`: ``lp`` (eq. 8) or reduced by slip (eq. 11).
+        """
+        frame = self.mesh.frame_nodes
+        out = np.zeros((frame.size, 3))
+        out[:, :2] = np.array([self.edge_stretch(modes, displacement), self.cfg.prestretch]) * self.mesh.nodes[frame]
+        return out
+
+    def apply_prescribed(self, x: np.ndarray, modes: Sequence[str], displacement: np.ndarray) -> None:
+        """Set the prescribed positions in ``x`` in place (eqs. 8, 9, 11).
+
+        Frame nodes sit at :meth:`frame_positions`, ``(lx X, lp Y, 0)`` with ``lx``
+        = :meth:`edge_stretch` (``lp`` without slip, eq. 8; X, Y from the membrane
+        centre, where both layouts put the origin); the disk of a driven unit k at
+        ``(lp X, lp Y, d_k)`` (eq. 9, no slip).
+        """
+        lp = self.cfg.prestretch
+        xs = x.reshape(-1, 3)
+        xs[self.mesh.frame_nodes] = self.frame_positions(modes, displacement)
+        for k, mode in enumerate(modes):
+            if mode == DRIVEN:
+                disk = self.mesh.indenter_nodes[k]
+                xs[disk, :2] = lp * self.mesh.nodes[disk]
+                xs[disk, 2] = displacement[k]
+
+    def corner_area_stretch(self, positions: np.ndarray) -> np.ndarray:
+        """Area ratio (deformed / reference) of each element's corner triangle [-], shape (n_elements,).
+
+        The flat-triangle view of the membrane that a visualisation draws; ``positions``
+        are the node positions, shape (n_nodes, 3) [m].
+        """
+        tri = positions[self.mesh.elements[:, :3]]
+        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+        return area / self._corner_area
+
+    def energy(self, point: PointState, voltage: np.ndarray) -> float:
+        """Stored energy ``t0 sum_q w_q Psi`` [J] of a point state."""
+        psi = energy_density(point.c, self.yeoh, self.maxwell(voltage)[:, None])
+        return float(self.thickness * np.sum(self.disc.weight * psi))
+
+    def maxwell(self, voltage: np.ndarray) -> np.ndarray:
+        """Per element ``k = 0.5 eps0 epsr (V/t0)^2`` [Pa] of its unit, 0 on passive membrane."""
+        unit = self.mesh.element_unit
+        per_unit = 0.5 * self.cfg.permittivity * (np.asarray(voltage, float) / self.thickness) ** 2
+        return np.where(unit >= 0, np.append(per_unit, 0.0)[unit], 0.0)
+
+    def outputs(self, x: np.ndarray, forces: np.ndarray, point: PointState, voltage: np.ndarray,
+                modes: Sequence[str]) -> Outputs:
+        """Per-unit force (eq. 10), capacitance (eq. 7), centre deflection, peak field.
+
+        ``forces`` is the internal force vector at ``x`` and ``point`` its point
+        state; the force on a driven indenter is the sum of the z components over its
+        disk nodes.  The minimum principal Cauchy stress is taken over the membrane
+        outside driven disks.
+        """
+        mesh, cfg = self.mesh, self.cfg
+        c = point.c
+        det = c[..., 0] * c[..., 1] - c[..., 2] ** 2
+        weight_det = np.sum(self.disc.weight * det, axis=1)
+        z = forces.reshape(-1, 3)[:, 2]
+        cap = np.empty(self.n_units)
+        peak = np.empty(self.n_units)
+        force = np.zeros(self.n_units)
+        held = np.zeros(mesh.n_elements, dtype=bool)
+        for k, mode in enumerate(modes):
+            electrode = self._unit_elements[k]
+            cap[k] = weight_det[electrode].sum()
+            peak[k] = det[electrode].max()
+            if mode == DRIVEN:
+                force[k] = z[mesh.indenter_nodes[k]].sum()
+                held[self._disk_elements[k]] = True
+        cap *= cfg.permittivity / cfg.thickness
+        peak = np.sqrt(peak) * np.abs(np.asarray(voltage, float)) / cfg.thickness
+        sigma_min = principal_cauchy_stresses(c[~held], point.g[~held])[..., 0].min()
+        centre = x.reshape(-1, 3)[mesh.centre_nodes, 2]
+        return Outputs(force, cap, centre, peak, float(sigma_min))

@@ -1,0 +1,293 @@
+"""Newton solver for the membrane's equilibrium, with load stepping and warm starts.
+
+Equilibrium is stationarity of the total energy ``E(x)`` over the free dofs
+(paper eq. 3 in weak form): ``r_f(x) = dE/dx_f = 0``.  Each iteration solves
+``K_ff dx = -r_f`` with the consistent tangent (material + geometric stiffness,
+:mod:`.assembly`) and backtracks on the residual norm when a full step does not
+reduce it.  The solver
+
+* moves from the current state to the target along a load path (indenter
+  displacements and voltages interpolated linearly, and a frame that is not yet
+  where the slip table of eq. 11 puts it moved there gradually), halving the step
+  when Newton fails and growing it again after successes;
+* predicts each step with the tangent of the last converged state
+  (``x_f += -K_ff^-1 K_fp dx_p``), so small increments need one or two iterations;
+* may reuse the last factorisation for several iterations (modified Newton) and
+  refactors when the residual stops falling fast;
+* converges when the residual is below ``residual_tol * force_scale`` and the
+  remaining position error, estimated from the last increment and the residual
+  reduction ratio ``q`` as ``|dx| q / (1 - q)``, is below
+  ``increment_tol * length_scale``;
+* checks that the equilibrium is a stable minimum from the inertia of the
+  ``LDL^T`` factorisation of ``K_ff`` at the converged state (a Cholesky test).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+from .assembly import element_tangents, internal_forces
+from .membrane import DRIVEN, MembraneModel
+
+
+class ConvergenceError(RuntimeError):
+    """Newton did not reach equilibrium, even after cutting the load step."""
+
+
+@dataclass(frozen=True)
+class NewtonSettings:
+    """Tolerances and limits of the Newton solver.
+
+    Attributes
+    ----------
+    residual_tol : float
+        Max |free residual| relative to the model's force scale ``t0 c10 D``.
+    increment_tol : float
+        Max |last increment| relative to the model's length scale ``D``.
+    max_iterations : int
+        Newton iterations per load step before the step counts as failed.
+    max_step_cuts : int
+        Times a load step may be halved before the solve raises.
+    modified_newton : bool
+        Reuse a factorisation across iterations while the residual falls by at
+        least ``contraction`` per iteration.
+    contraction : float
+        Required residual reduction factor per modified-Newton iteration.
+    check_stability : bool
+        Factor the tangent at the converged state and report its inertia.
+    unstable_step : float
+        A load step longer than this fraction of the path that converges to a
+        state whose tangent is not positive definite, starting from a stable one, is
+        retried in halves: a long step can land on a spurious (saddle) branch, e.g.
+        two indenters pulled 8 mm out of the flat membrane at once.  Shorter steps
+        are accepted and their state reported unstable.
+    long_jump : float
+        A solve whose indenter displacements change by more than this fraction of
+        D is checked for stability (and so retried as above) even when
+        ``check_stability`` is off: a jump is where a spurious branch is likely,
+        and one factorisation is cheap next to its load steps.
+    """
+
+    residual_tol: float = 1e-8
+    increment_tol: float = 1e-7
+    max_iterations: int = 30
+    max_step_cuts: int = 12
+    modified_newton: bool = True
+    contraction: float = 0.5
+    check_stability: bool = True
+    unstable_step: float = 1.0 / 32.0
+    long_jump: float = 0.1
+
+
+@dataclass
+class Factorisation:
+    """An LDL^T-type factorisation of ``K_ff`` and the ``K_fp`` block at one state."""
+
+    lu: object
+    k_fp: object
+    free: np.ndarray
+    prescribed: np.ndarray
+    negative_pivots: int
+    _influence: dict = field(default_factory=dict)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """``K_ff^-1 b``."""
+        return self.lu.solve(b)
+
+    def predict(self, dxp: np.ndarray, groups: list[np.ndarray]) -> np.ndarray:
+        """Linear response ``-K_ff^-1 K_fp dxp`` of the free dofs to a prescribed change.
+
+        ``groups`` are index sets into the prescribed dofs that usually move together
+        (the z dofs of one indenter disk).  A group moved rigidly costs no solve: its
+        influence vector ``-K_ff^-1 K_fp 1_group`` is computed once per factorisation.
+        Any other change (the frame's X dofs moving with the slip factor of eq. 11)
+        costs one solve.
+        """
+        rest = dxp.copy()
+        out = np.zeros(self.free.size)
+        for idx in groups:
+            amount = dxp[idx]
+            if amount[0] != 0.0 and np.all(amount == amount[0]):
+                key = idx.tobytes()
+                if key not in self._influence:
+                    self._influence[key] = -self.solve(np.asarray(self.k_fp[:, idx].sum(axis=1)).ravel())
+                out += amount[0] * self._influence[key]
+                rest[idx] = 0.0
+        if np.any(rest):
+            out -= self.solve(self.k_fp @ rest)
+        return out
+
+
+@dataclass
+class SolveStats:
+    """What one solve did."""
+
+    iterations: int = 0
+    factorisations: int = 0
+    steps: int = 0
+    step_cuts: int = 0
+    residual_norm: float = float("nan")
+    stability_checked: bool = False
+
+
+def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
+    """Assemble ``K`` from element matrices and factor its free-free block.
+
+    The factorisation uses diagonal pivots in a symmetric ordering, so it is an
+    ``LDL^T`` in disguise: by Sylvester's law of inertia the number of negative
+    pivots is the number of negative eigenvalues of ``K_ff`` (0 for a stable
+    minimum).  If SuperLU had to pivot off the diagonal the inertia is unknown and
+    ``negative_pivots`` is -1.
+    """
+    values = model.pattern.values(ke)
+    k_ff = model.pattern.block(values, free, free).tocsc()  # symmetric: CSR data is CSC
+    k_fp = model.pattern.block(values, free, prescribed)
+    lu = spla.splu(k_ff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                   options={"SymmetricMode": True})
+    if np.array_equal(lu.perm_r, lu.perm_c):
+        negative = int(np.count_nonzero(lu.U.diagonal() < 0))
+    else:
+        negative = -1
+    return Factorisation(lu, k_fp, free, prescribed, negative)
+
+
+class EquilibriumSolver:
+    """Solves for equilibria of one model, keeping the last factorisation for warm starts."""
+
+    def __init__(self, model: MembraneModel, settings: NewtonSettings | None = None):
+        self.model = model
+        self.settings = settings or NewtonSettings()
+        self.factorisation: Factorisation | None = None
+
+    # ------------------------------------------------------------------ one step
+    def _newton(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, maxwell: np.ndarray,
+                fact: Factorisation | None, stats: SolveStats) -> tuple | None:
+        """Newton iterations at fixed prescribed values.
+
+        Returns ``(x, r, point_state, factorisation)`` at convergence, None on failure.
+        """
+        m, s = self.model, self.settings
+        args = (m.yeoh, maxwell, m.thickness)
+        r_tol = s.residual_tol * m.force_scale
+        x_tol = s.increment_tol * m.length_scale
+        if fact is not None and not np.array_equal(fact.free, free):
+            fact = None
+        fresh = False  # whether ``fact`` was computed at the current iterate
+        r, point = internal_forces(m.disc, x, *args)
+        norm = np.linalg.norm(r[free])
+        last_dx = np.inf
+        for _ in range(s.max_iterations):
+            if not np.isfinite(norm):
+                return None
+            peak = np.abs(r[free]).max()
+            if peak <= r_tol and last_dx <= x_tol:
+                stats.residual_norm = float(peak)
+                return x, r, point, fact
+            if fact is None:
+                r, ke = element_tangents(m.disc, x, *args)
+                fact = factorise(m, ke, free, prescribed)
+                stats.factorisations += 1
+                fresh = True
+            dx = -fact.solve(r[free])
+            stats.iterations += 1
+            for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):  # backtrack on the residual norm
+                trial = x.copy()
+                trial[free] += alpha * dx
+                r_trial, point_trial = internal_forces(m.disc, trial, *args)
+                norm_trial = np.linalg.norm(r_trial[free])
+                if np.isfinite(norm_trial) and (norm_trial < norm or np.abs(r_trial[free]).max() <= r_tol):
+                    break
+            else:
+                if fresh:
+                    return None
+                fact = None  # a stale tangent failed: refactor here and retry
+                continue
+            ratio = norm_trial / norm if norm > 0 else 0.0
+            x, r, point, norm = trial, r_trial, point_trial, norm_trial
+            # With contraction ratio q the remaining error is about |dx| q / (1 - q)
+            # (a geometric series): that is what is tested against the tolerance.
+            step_size = alpha * np.abs(dx).max()
+            last_dx = step_size * ratio / (1.0 - ratio) if (alpha == 1.0 and ratio < 0.9) else step_size
+            if not s.modified_newton or ratio > s.contraction:
+                fact = None
+            fresh = False
+        return None
+
+    # ------------------------------------------------------------------ load path
+    def solve(self, x: np.ndarray, modes: tuple[str, ...], start_displacement: np.ndarray,
+              displacement: np.ndarray, start_voltage: np.ndarray, voltage: np.ndarray,
+              check_stability: bool | None = None) -> tuple:
+        """Equilibrium at (``displacement``, ``voltage``) starting from state ``x``.
+
+        ``x`` is a converged state at (``start_displacement``, ``start_voltage``)
+        for driven units; it is not modified.  Returns the new positions, the
+        internal forces there, the :class:`~.assembly.PointState` there and
+        :class:`SolveStats`.  ``check_stability`` overrides the setting for this
+        solve.  Raises :class:`ConvergenceError`.
+        """
+        m, s = self.model, self.settings
+        check = s.check_stability if check_stability is None else check_stability
+        d0, d1 = np.asarray(start_displacement, float), np.asarray(displacement, float)
+        check = check or bool(np.abs(d1 - d0).max(initial=0.0) > s.long_jump * m.length_scale)
+        prescribed, free = m.prescribed_dofs(modes)
+        groups = [np.flatnonzero(np.isin(prescribed, 3 * m.mesh.indenter_nodes[k] + 2))
+                  for k, mode in enumerate(modes) if mode == DRIVEN]
+        stats = SolveStats()
+        v0, v1 = np.asarray(start_voltage, float), np.asarray(voltage, float)
+        x = x.copy()
+        # With a slip table (eq. 11) the frame of ``x`` may not be where the path starts
+        # (after a reset to the gamma = 1 flat state, or when the driven units change):
+        # that lag is blended out along the path, so step cuts also shorten a frame jump.
+        # Without slip it is exactly zero.
+        frame = m.mesh.frame_nodes
+        lag = x.reshape(-1, 3)[frame] - m.frame_positions(modes, d0)
+        fact = self.factorisation
+        if fact is not None and not np.array_equal(fact.free, free):
+            fact = None
+        start_stable = self.factorisation is None or self.factorisation.negative_pivots == 0
+        done, step, cuts, retries = 0.0, 1.0, 0, 0
+        while done < 1.0:
+            t = min(1.0, done + step)
+            trial = x.copy()
+            m.apply_prescribed(trial, modes, d0 + t * (d1 - d0))
+            if lag.any():
+                trial.reshape(-1, 3)[frame] += (1.0 - t) * lag
+            if fact is not None:  # linear predictor from the last converged tangent
+                trial[free] += fact.predict(trial[prescribed] - x[prescribed], groups)
+            outcome = self._newton(trial, free, prescribed, m.maxwell(v0 + t * (v1 - v0)), fact, stats)
+            if outcome is None:
+                cuts += 1
+                stats.step_cuts = cuts + retries
+                if cuts > s.max_step_cuts:
+                    reached_d, reached_v = d0 + done * (d1 - d0), v0 + done * (v1 - v0)
+                    raise ConvergenceError(
+                        f"Newton failed to converge after {cuts - 1} step cuts: reached {done:.3g} of the load "
+                        f"path (displacement {np.round(reached_d, 9).tolist()} m, voltage "
+                        f"{np.round(reached_v, 3).tolist()} V) on the way to displacement {d1.tolist()} m, "
+                        f"voltage {v1.tolist()} V; beyond it the membrane may have no stable equilibrium "
+                        f"(e.g. electromechanical instability at high voltage)")
+                step *= 0.5
+                fact = self.factorisation if (self.factorisation is not None
+                                              and np.array_equal(self.factorisation.free, free)) else None
+                continue
+            x_new, r, point, fact_used = outcome
+            if t < 1.0 or check or fact_used is None:
+                _, ke = element_tangents(m.disc, x_new, m.yeoh, m.maxwell(v0 + t * (v1 - v0)), m.thickness)
+                fact_new = factorise(m, ke, free, prescribed)
+                stats.factorisations += 1
+                if start_stable and fact_new.negative_pivots > 0 and t - done > s.unstable_step:
+                    retries += 1  # a long step onto an unstable state: retry it in halves
+                    stats.step_cuts = cuts + retries  # (not a Newton failure: max_step_cuts counts those)
+                    step = 0.5 * (t - done)
+                    continue
+            else:
+                fact_new = fact_used
+            x, fact, done = x_new, fact_new, t
+            stats.steps += 1
+            step = min(2.0 * step, 1.0)
+            self.factorisation = fact
+        stats.stability_checked = check
+        return x, r, point, stats

@@ -1,0 +1,390 @@
+"""Re-simulate a recorded run: the twin on a bag's commands, offline or republished live.
+
+``dea-twin replay BAG`` reads the per-unit commands of a recording (a single ``.mcap``
+file or a rosbag2 directory of them), re-runs :class:`~dea_array_twin.model.twin.ArrayTwin` on them as fast
+as it can and writes what the twin answers; ``dea-twin replay --realtime BAG`` instead
+republishes the recorded commands with their original timing, for a controller or a
+live twin in the loop without ``ros2 bag play``.  This module holds the offline replay
+(:func:`replay_commands`, :func:`compare_outputs`, the MCAP and CSV outputs,
+:func:`replay_offline`); the options are in :mod:`dea_array_twin.cli.replay`; the bag
+is read by :class:`~dea_array_twin.bag.reader.Bag`, its topics chosen by
+:mod:`~dea_array_twin.bag.topics`, its config by
+:func:`~dea_array_twin.bag.twin_config.resolve_config`, and ``--realtime`` runs
+:func:`~.realtime.realtime_replay`.
+
+Bag contract (what the twin's recorder writes; a rig recorded with ``ros2 bag record -s
+mcap`` has the command topics only):
+
+* ``command/displacement``, ``command/voltage``: ``std_msgs/msg/Float64MultiArray``,
+  one value per unit [m], [V]; any namespace (``/left_array/command/voltage``), or any
+  other name mapped with ``--topic-map OLD=NEW``;
+* recorded outputs ``force``, ``capacitance`` (Float64MultiArray), used for the FIT;
+* metadata record ``dea_array_twin_config``: every :class:`~dea_array_twin.model.config.ArrayConfig` field
+  as ``str(value)``, plus ``unit_modes`` (``"[driven, free, driven]"``) and
+  ``update_rate``.
+
+Offline replay (:func:`replay_commands`) is sample and hold: displacement and voltage
+start at zero, each command message in log-time order replaces one of them and triggers
+one solve.  Commands the twin node would reject (:func:`~dea_array_twin.model.twin.command_error`: wrong
+length, NaN/inf, beyond ``max_displacement``, negative or breakdown voltage) are
+skipped and counted.  The first solver failure stops the replay (exit code 1); what
+was computed up to it is still written.  Outputs, one entry per solve:
+
+* ``OUT.mcap``: ``/command/displacement`` or ``/command/voltage`` (the accepted command
+  that triggered the solve), ``/force``, ``/capacitance`` (Float64MultiArray) and
+  ``/unit_states`` (JointState: position = centre deflection [m], velocity = 0 (the
+  model is quasi-static), effort = force [N]), each with log time = the command's log
+  time, plus the ``dea_array_twin_config`` metadata actually used and a
+  ``dea_array_twin_replay`` record (source, ``time_origin_ns``).  The output is itself a
+  replayable, plottable bag;
+* ``OUT.csv``: ``time_s`` (from the first message of the input bag), ``d1_m..``,
+  ``V1_V..``, ``F1_N..``, ``C1_F..``.
+
+If the bag holds recorded ``force``/``capacitance``, each recorded message is compared
+with the replayed state current at its log time (the latest accepted command at or
+before it; the zero command before the first one) and the paper's FIT (eq. 12, :func:`fit`)
+is printed per unit and channel.  A recording of the live node at ``update_rate`` > 0
+lags its commands by up to one tick, which costs a little FIT on fast command changes.
+
+A file without a summary (the recorder was killed) is refused (see :mod:`~dea_array_twin.bag.reader`).
+
+Exit codes: 0 ok, 1 solver failure, 2 bad input (missing or non-MCAP file, truncated
+bag, no command topics, bad config), 130 interrupted (``--realtime``).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+import time
+from collections import Counter
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..bag.reader import Bag, BagError
+from ..bag.series import csv_header
+from ..bag.topics import (
+    COMMANDS,
+    FLOAT_ARRAY,
+    OUTPUTS,
+    command_topics,
+    output_topics,
+)
+from ..bag.twin_config import REPLAY_METADATA, metadata_from_config, resolve_config
+from ..bag.writer import CONFIG_RECORD
+from ..model.metrics import fit
+from ..model.solver import ConvergenceError
+from ..model.twin import ArrayTwin, command_error
+
+__all__ = ["ReplayRun", "compare_outputs", "replay_commands", "replay_offline"]
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+_MAX_LISTED_WARNINGS = 5
+
+
+# ------------------------------------------------------------- offline replay
+
+@dataclass
+class ReplayRun:
+    """The twin's answers to a sequence of commands: one row per solve (SI units).
+
+    Attributes
+    ----------
+    times_ns : ndarray, shape (k,)
+        Log time of the command that triggered each solve [ns].
+    kinds : list of str
+        ``"displacement"`` or ``"voltage"``: which command triggered the solve.
+    displacement, voltage, force, capacitance, centre_deflection : ndarray, shape (k, n)
+        Held commands [m], [V] and outputs [N], [F], [m] after each solve.
+    initial_force, initial_capacitance : ndarray, shape (n,)
+        The state at the zero command, current before the first accepted command.
+    skipped : Counter
+        Rejected commands per kind.
+    state_warnings : Counter
+        Solves whose result carries a warning (wrinkling, field...), per warning kind.
+    error : str or None
+        Why the replay stopped early (solver failure), else None.
+    """
+
+    times_ns: np.ndarray
+    kinds: list[str]
+    displacement: np.ndarray
+    voltage: np.ndarray
+    force: np.ndarray
+    capacitance: np.ndarray
+    centre_deflection: np.ndarray
+    initial_force: np.ndarray
+    initial_capacitance: np.ndarray
+    skipped: Counter = field(default_factory=Counter)
+    state_warnings: Counter = field(default_factory=Counter)
+    error: str | None = None
+
+    @property
+    def n_solves(self) -> int:
+        """Number of solves (rows)."""
+        return len(self.times_ns)
+
+
+#: What each :attr:`.TwinResult.flags` entry means, for the replay's counts.
+_FLAG_TEXT = {"unstable": "equilibrium not a stable minimum", "wrinkled": "compressive stress: the membrane would "
+              "wrinkle", "field_exceeded": "electric field above breakdown_field"}
+
+
+def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tuple[int, str, Sequence[float]]],
+                    total: int | None = None, time_origin_ns: int = 0) -> ReplayRun:
+    """Run the twin on commands in order, sample and hold: one solve per accepted command.
+
+    Parameters
+    ----------
+    twin : ArrayTwin
+        The twin (reset first).
+    modes
+        ``"driven"``/``"free"`` per unit.
+    commands
+        ``(log_time_ns, kind, values)`` with kind ``"displacement"`` [m] or ``"voltage"`` [V],
+        in log-time order.
+    total
+        Number of commands, for the progress bar.
+    time_origin_ns
+        Log time shown as t = 0 in messages.
+
+    Returns
+    -------
+    ReplayRun
+        What was computed; ``error`` is set if a solve failed (the run stops there).
+    """
+    from tqdm import tqdm
+
+
+    n = twin.n_units
+    twin.reset()
+    held = {kind: np.zeros(n) for kind in COMMANDS}
+    first = twin.solve(held["displacement"], held["voltage"], modes, check_stability=False)
+    rows: dict[str, list] = {k: [] for k in ("t", "kind", "d", "v", "f", "c", "z")}
+    skipped: Counter = Counter()
+    state_warnings: Counter = Counter()
+    error = None
+    bar = tqdm(total=total, desc="replay", unit="cmd", file=sys.stderr, disable=None)
+    try:
+        for log_time, kind, values in commands:
+            bar.update(1)
+            values = list(values)
+            t_s = (log_time - time_origin_ns) * 1e-9
+            problem = command_error(kind, values, twin.config)
+            if problem:
+                skipped[kind] += 1
+                if sum(skipped.values()) <= _MAX_LISTED_WARNINGS:
+                    bar.write(f"dea-twin replay: warning: skipping {kind} command at t = {t_s:.6f} s: {problem}",
+                              file=sys.stderr)
+                continue
+            held[kind] = np.asarray(values, dtype=float)
+            try:
+                res = twin.solve(held["displacement"], held["voltage"], modes, check_stability=False)
+            except (ConvergenceError, ValueError) as exc:
+                error = f"solve failed at t = {t_s:.6f} s ({kind} command {values}): {exc}"
+                break
+            state_warnings.update(_FLAG_TEXT[flag] for flag in res.flags)
+            rows["t"].append(int(log_time))
+            rows["kind"].append(kind)
+            rows["d"].append(held["displacement"].copy())
+            rows["v"].append(held["voltage"].copy())
+            rows["f"].append(np.asarray(res.force, dtype=float))
+            rows["c"].append(np.asarray(res.capacitance, dtype=float))
+            rows["z"].append(np.asarray(res.centre_deflection, dtype=float))
+    finally:
+        bar.close()
+
+    def stack(key: str) -> np.ndarray:
+        return np.array(rows[key], dtype=float).reshape(-1, n)
+
+    return ReplayRun(times_ns=np.array(rows["t"], dtype=np.int64), kinds=rows["kind"], displacement=stack("d"),
+                     voltage=stack("v"), force=stack("f"), capacitance=stack("c"), centre_deflection=stack("z"),
+                     initial_force=np.asarray(first.force, dtype=float),
+                     initial_capacitance=np.asarray(first.capacitance, dtype=float),
+                     skipped=skipped, state_warnings=state_warnings, error=error)
+
+
+def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.ndarray]],
+                    lag_ns: int = 0) -> dict[str, np.ndarray]:
+    """FIT per unit of the replayed outputs against recorded ones.
+
+    Parameters
+    ----------
+    run
+        The replay.
+    recorded
+        ``{"force": (times_ns, values), "capacitance": ...}``, values of shape (m, n).
+    lag_ns
+        Largest latency of the recorded outputs behind their commands [ns].  Each
+        recorded message is compared with the replayed state current at its log time
+        or, if one fits it better, with a state current up to ``lag_ns`` earlier (the
+        live node answers a command at one of its next updates).  0 pairs each message
+        with the latest solve at or before it (or the zero-command state before the first).
+
+    Returns
+    -------
+    dict
+        Kind -> FIT [%] per unit (``nan`` where the recorded signal is constant).
+    """
+    out = {}
+    for kind, (times, values) in recorded.items():
+        model_rows = np.vstack([getattr(run, f"initial_{kind}")[None, :], getattr(run, kind)])
+        times = np.asarray(times, dtype=np.int64)
+        last = np.searchsorted(run.times_ns, times, side="right")
+        first = np.searchsorted(run.times_ns, times - int(lag_ns), side="right")
+        idx = last.copy()
+        for i in np.flatnonzero(first < last):  # several candidate states: take the closest
+            candidates = np.arange(first[i], last[i] + 1)
+            idx[i] = candidates[np.argmin(np.abs(model_rows[candidates] - values[i]).sum(axis=1))]
+        model = model_rows[idx]
+        out[kind] = np.array([fit(values[:, k], model[:, k]) for k in range(values.shape[1])])
+    return out
+
+
+# ------------------------------------------------------------------- outputs
+
+
+def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]]) -> None:
+    """Write the replay as a ROS 2 MCAP bag (see the module docstring for the topics).
+
+    Every sequence is filled (``serialize_message`` may append junk bytes to empty ones).
+    """
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import JointState
+
+    from ..bag.writer import Ros2McapWriter
+    from ..ros.node import unit_array
+
+    n = run.force.shape[1]
+    names = [f"unit_{k + 1}" for k in range(n)]
+    with Ros2McapWriter(path, metadata=metadata, flush_period=None) as rec:
+        ids = {kind: rec.add_topic(f"/command/{kind}", FLOAT_ARRAY) for kind in COMMANDS}
+        ids.update({kind: rec.add_topic(f"/{kind}", FLOAT_ARRAY) for kind in OUTPUTS})
+        ids["unit_states"] = rec.add_topic("/unit_states", JOINT_STATE)
+        for i, t in enumerate(run.times_ns.tolist()):
+            kind = run.kinds[i]
+            held = run.displacement[i] if kind == "displacement" else run.voltage[i]
+            rec.write(ids[kind], serialize_message(unit_array(held)), t)
+            rec.write(ids["force"], serialize_message(unit_array(run.force[i])), t)
+            rec.write(ids["capacitance"], serialize_message(unit_array(run.capacitance[i])), t)
+            states = JointState(name=names, position=[float(v) for v in run.centre_deflection[i]],
+                                velocity=[0.0] * n, effort=[float(v) for v in run.force[i]])
+            states.header.stamp.sec, states.header.stamp.nanosec = divmod(t, 1_000_000_000)
+            states.header.frame_id = "dea_array"
+            rec.write(ids["unit_states"], serialize_message(states), t)
+
+
+def write_csv(path: Path, run: ReplayRun, origin_ns: int) -> None:
+    """Write the replay as CSV: one row per solve, time relative to ``origin_ns``, SI units."""
+    n = run.force.shape[1]
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(csv_header(n))
+        for i, t in enumerate(run.times_ns.tolist()):
+            writer.writerow([round((t - origin_ns) * 1e-9, 9), *run.displacement[i].tolist(), *run.voltage[i].tolist(),
+                             *run.force[i].tolist(), *run.capacitance[i].tolist()])
+
+
+def _output_base(bag: Bag, out: str | None) -> Path:
+    if out is not None:
+        base = Path(out)
+        return base.with_suffix("") if base.suffix in (".mcap", ".csv") else base
+    return bag.output_path("_replay")
+
+
+def _fit_table(fits: dict[str, np.ndarray], topics: dict[str, str], counts: dict[str, int]) -> str:
+    kinds = [k for k in OUTPUTS if k in fits]
+    n = len(next(iter(fits.values())))
+    head = ", ".join(f"{topics[k]} ({counts[k]} msgs)" for k in kinds)
+    lines = [f"FIT [%] (paper eq. 12) of the replay against the recorded {head}:",
+             "  unit" + "".join(f"  {k + ' [%]':>16}" for k in kinds)]
+    for u in range(n):
+        cells = "".join(f"  {'n/a' if math.isnan(fits[k][u]) else f'{fits[k][u]:.4f}':>16}" for k in kinds)
+        lines.append(f"  {u + 1:>4}{cells}")
+    if any(np.isnan(fits[k]).any() for k in kinds):
+        lines.append("  n/a: the recorded signal is constant (e.g. a free unit's zero force): FIT undefined")
+    return "\n".join(lines)
+
+
+def _log(text: str) -> None:
+    print(f"dea-twin replay: {text}", file=sys.stderr)
+
+
+def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None, modes: Sequence[str] | None,
+                   out: str | None, fit_lag: float | None = None) -> int:
+    """``dea-twin replay BAG``: re-run the twin, write OUT.mcap and OUT.csv, print FIT; the exit code."""
+    commands = command_topics(bag, topic_map)
+    outputs = output_topics(bag, commands, topic_map)
+    cfg, modes, notes = resolve_config(bag, config_path, modes)
+    for note in notes:
+        _log(note)
+    base = _output_base(bag, out)
+    mcap_path, csv_path = base.with_name(base.name + ".mcap"), base.with_name(base.name + ".csv")
+    if any(mcap_path.resolve() == p.resolve() for p in bag.files):
+        raise BagError(f"the output {mcap_path} would overwrite the input; choose another --out")
+    _log("commands from " + ", ".join(f"{t} ({bag.counts.get(t, 0)} msgs)" for t in commands.values()))
+    twin = ArrayTwin(cfg)
+    kind_of = {topic: kind for kind, topic in commands.items()}
+    recorded: dict[str, tuple[list, list]] = {k: ([], []) for k in outputs}
+    output_kind = {topic: kind for kind, topic in outputs.items()}
+    bad_outputs: Counter = Counter()
+    n = cfg.n_units
+
+    def command_stream() -> Iterator[tuple[int, str, list[float]]]:
+        for msg in bag.messages(list(commands.values()) + list(outputs.values()), decode=True):
+            if msg.topic in kind_of:
+                yield msg.log_time_ns, kind_of[msg.topic], list(msg.decoded.data)
+            else:
+                kind = output_kind[msg.topic]
+                values = np.asarray(msg.decoded.data, dtype=float)
+                if values.shape != (n,) or not np.all(np.isfinite(values)):
+                    bad_outputs[kind] += 1
+                    continue
+                recorded[kind][0].append(msg.log_time_ns)
+                recorded[kind][1].append(values)
+
+    total = sum(bag.counts.get(t, 0) for t in commands.values()) or None
+    origin = bag.start_ns or 0
+    tic = time.perf_counter()
+    run = replay_commands(twin, modes, command_stream(), total=total, time_origin_ns=origin)
+    elapsed = time.perf_counter() - tic
+    for kind, count in run.skipped.items():
+        _log(f"warning: skipped {count} invalid {kind} command(s)")
+    for text, count in run.state_warnings.items():
+        _log(f"warning: {count} replayed state(s) flagged: {text}")
+    for kind, count in bad_outputs.items():
+        _log(f"warning: {count} recorded {kind} message(s) of the wrong length or not finite: not compared")
+    if run.n_solves == 0 and run.error is None:
+        raise BagError(f"no valid command in {bag.path} ({sum(run.skipped.values())} rejected); "
+                       f"does the config match the recording? (--config)")
+    metadata = {CONFIG_RECORD: metadata_from_config(cfg, modes),
+                REPLAY_METADATA: {"source": str(bag.path.resolve()), "time_origin_ns": str(origin),
+                                  "config_source": notes[0], "solves": str(run.n_solves)}}
+    write_mcap(mcap_path, run, metadata)
+    write_csv(csv_path, run, origin)
+    print(f"replayed {run.n_solves} command(s) in {elapsed:.2f} s "
+          f"({sum(run.skipped.values())} skipped): wrote {mcap_path} and {csv_path}")
+    if run.error is not None:
+        print(f"dea-twin replay: solver failed, replay stopped: {run.error}; outputs hold the states before it",
+              file=sys.stderr)
+        return 1
+    data = {k: (np.array(t, dtype=np.int64), np.array(v, dtype=float).reshape(-1, n))
+            for k, (t, v) in recorded.items() if t}
+    if data:
+        if fit_lag is None:
+            recorded_rate = (bag.metadata(CONFIG_RECORD) or {}).get("update_rate", "0")
+            try:
+                rate = float(recorded_rate)
+            except ValueError:
+                _log(f"warning: recorded update_rate {recorded_rate!r} is not a number; pass --fit-lag")
+                rate = 0.0
+            fit_lag = 3.0 / rate if rate > 0 else 0.0
+        _log(f"FIT pairs each recorded output with a replayed state current up to {fit_lag * 1e3:.1f} ms before "
+             "it (three update periods of the recording node; --fit-lag to change)")
+        fits = compare_outputs(run, data, int(round(fit_lag * 1e9)))
+        print(_fit_table(fits, outputs, {k: len(v[0]) for k, v in data.items()}))
+    return 0

@@ -1,0 +1,256 @@
+"""Test harness for controllers developed against the twin (pytest-friendly).
+
+Each harness runs on its own ROS domain (a free id from ``domain_coordinator``) with
+discovery limited to localhost, so parallel tests never see each other::
+
+    from dea_array_twin.ros.testing import TwinHarness
+
+    def test_my_controller():
+        with TwinHarness(parameters={"update_rate": 50.0}) as h:
+            h.send_displacement([0.0, 0.01, 0.0])
+            force = h.wait_for("force", lambda m: m.data[1] > 0.1, timeout=10.0)
+
+``TwinHarness(process=True)`` starts the twin as a separate process (``python -m
+dea_array_twin.ros.node``), as ``ros2 run`` would; otherwise it runs in this process on
+its own executor thread.  ``harness.node`` is the test-side node: add your
+controller's publishers/subscriptions to it or spin your own nodes with
+``harness.context``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import subprocess
+import sys
+import threading
+import time
+from typing import Any, Callable
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from ..bag.msg_definitions import message_class
+from .node import OUTPUT_QOS, TwinNode
+from .recorder import RECORDED_TOPICS
+
+
+def _output_types() -> dict[str, type]:
+    """The twin's output topics (everything it records but the commands) and their classes."""
+    return {topic: message_class(type_name) for topic, type_name in RECORDED_TOPICS.items()
+            if not topic.startswith("command/")}
+
+
+class TwinHarness:
+    """A twin plus a test-side node on an isolated ROS domain.
+
+    Parameters
+    ----------
+    parameters : dict, optional
+        ROS parameters of the twin node (e.g. ``{"update_rate": 50.0}``).
+    process : bool
+        Run the twin in a subprocess instead of this process.
+    namespace : str
+        Namespace of the twin (its topics are relative).
+    params_file : str, optional
+        A ROS parameters YAML for the twin (``process=True`` only).
+    """
+
+    def __init__(self, parameters: dict[str, Any] | None = None, process: bool = False, namespace: str = "",
+                 params_file: str | None = None):
+        self.parameters = dict(parameters or {})
+        self.params_file = params_file
+        self.process_mode = process
+        self.namespace = namespace.rstrip("/")
+        self._stack = contextlib.ExitStack()
+        self._lock = threading.Lock()
+        self._messages: dict[str, list] = {}
+        self.twin_node: TwinNode | None = None
+        self.process: subprocess.Popen | None = None
+        #: Exception raised by a callback on the executor thread (which then stops).
+        self.spin_error: Exception | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> "TwinHarness":
+        from domain_coordinator import domain_id
+
+        try:
+            self.domain_id = self._stack.enter_context(domain_id())
+            previous = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE")
+            os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+            self._stack.callback(_restore_env, "ROS_AUTOMATIC_DISCOVERY_RANGE", previous)
+            self.context = Context()
+            rclpy.init(context=self.context, domain_id=self.domain_id)
+            self._stack.callback(self.context.try_shutdown)
+            self.executor = SingleThreadedExecutor(context=self.context)
+            self.node = Node("twin_test_client", context=self.context)
+            if self.process_mode:
+                self._start_process()
+            elif self.params_file:
+                raise ValueError("params_file needs process=True")
+            else:
+                overrides = [Parameter(k, value=v) for k, v in self.parameters.items()]
+                self.twin_node = TwinNode(context=self.context, parameter_overrides=overrides,
+                                          namespace=self.namespace or None)
+                self.executor.add_node(self.twin_node)
+            self.executor.add_node(self.node)
+            self._pubs = {kind: self.node.create_publisher(Float64MultiArray, self.topic(f"command/{kind}"),
+                                                           OUTPUT_QOS) for kind in ("displacement", "voltage")}
+            for name, msg_type in _output_types().items():
+                self.node.create_subscription(msg_type, self.topic(name),
+                                              lambda m, n=name: self._store(n, m), OUTPUT_QOS)
+            self._reset = self.node.create_client(Trigger, self.topic("reset"))
+            self._thread = threading.Thread(target=self._spin, daemon=True)
+            self._thread.start()
+            self._stack.callback(self._stop_spin)
+            self._wait_until_connected(timeout=60.0)
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
+
+    def _wait_until_connected(self, timeout: float) -> None:
+        """Block until the twin's command subscriptions and outputs are discovered."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            # Matched on our (writer) side; the twin's best-effort reader matches at about
+            # the same time: give it a moment, since a best-effort sample sent before
+            # that is dropped.
+            # Every command subscription the graph shows (the twin's own and, when it
+            # records, its recorder's) must be matched, not just one of them.
+            if (all(pub.get_subscription_count() >= max(1, self.node.count_subscribers(pub.topic_name))
+                    for pub in self._pubs.values())
+                    and self.node.count_publishers(self.topic("force")) >= 1):
+                time.sleep(0.2)
+                return
+            if self.process is not None and self.process.poll() is not None:
+                raise RuntimeError(f"twin process exited with {self.process.returncode}: "
+                                   f"{self.process.stdout.read()[-2000:]}")
+            time.sleep(0.02)
+        raise TimeoutError(f"twin not discovered on ROS domain {self.domain_id} within {timeout} s")
+
+    def _spin(self) -> None:
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.05)
+            except Exception as exc:  # a callback raised: wait_for reports it
+                if self.context.ok():
+                    self.spin_error = exc
+                return
+
+    def _stop_spin(self) -> None:
+        self.executor.shutdown()
+        self.context.try_shutdown()
+        self._thread.join(timeout=5.0)
+        if self.twin_node is not None:
+            self.twin_node.destroy_node()
+        self.node.destroy_node()
+
+    def _start_process(self) -> None:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+        args = [sys.executable, "-m", "dea_array_twin.ros.node", "--ros-args"]
+        if self.params_file:
+            args += ["--params-file", self.params_file]
+        for key, value in self.parameters.items():
+            args += ["-p", f"{key}:={_param_text(value)}"]
+        if self.namespace:
+            args += ["-r", f"__ns:={self.namespace}"]
+        self.process = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+        def stop() -> None:
+            if self.process.poll() is None:
+                self.process.send_signal(2)  # SIGINT: rclpy shuts down cleanly
+                try:
+                    self.process.wait(timeout=10.0)
+                except subprocess.TimeoutExpired:
+                    self.process.kill()
+                    self.process.wait()
+
+        self._stack.callback(stop)
+
+    # ------------------------------------------------------------------ helpers
+    def topic(self, name: str) -> str:
+        """Full name of a twin topic (honours the namespace)."""
+        return name if name.startswith("/") else f"{self.namespace}/{name}" if self.namespace else name
+
+    def _store(self, name: str, msg: Any) -> None:
+        with self._lock:
+            self._messages.setdefault(name, []).append(msg)
+
+    def messages(self, name: str) -> list:
+        """Every message received on output ``name`` so far."""
+        with self._lock:
+            return list(self._messages.get(name, []))
+
+    def clear(self) -> None:
+        """Forget received messages."""
+        with self._lock:
+            self._messages.clear()
+
+    def send_displacement(self, values) -> None:
+        """Publish a displacement command [m], one value per unit."""
+        self._pubs["displacement"].publish(Float64MultiArray(data=[float(v) for v in values]))
+
+    def send_voltage(self, values) -> None:
+        """Publish a voltage command [V], one value per unit."""
+        self._pubs["voltage"].publish(Float64MultiArray(data=[float(v) for v in values]))
+
+    def wait_for(self, name: str, predicate: Callable[[Any], bool] | None = None, timeout: float = 10.0,
+                 after: int = 0) -> Any:
+        """Wait for a message on output ``name`` (index >= ``after``) satisfying ``predicate``.
+
+        Raises ``TimeoutError`` saying what was last seen.
+        """
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            for msg in self.messages(name)[after:]:
+                if predicate is None or predicate(msg):
+                    return msg
+            if self.spin_error is not None:
+                raise RuntimeError(f"a callback on the harness executor raised: {self.spin_error!r}") \
+                    from self.spin_error
+            if self.process is not None and self.process.poll() is not None:
+                raise RuntimeError(f"twin process exited with {self.process.returncode}: "
+                                   f"{self.process.stdout.read()[-2000:]}")
+            time.sleep(0.01)
+        seen = self.messages(name)
+        raise TimeoutError(f"no matching message on {name!r} within {timeout} s "
+                           f"({len(seen)} received, last: {seen[-1] if seen else None})")
+
+    def reset(self, timeout: float = 10.0) -> Trigger.Response:
+        """Call the twin's ``reset`` service."""
+        if not self._reset.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError("reset service not available")
+        future = self._reset.call_async(Trigger.Request())
+        deadline = time.monotonic() + timeout
+        while not future.done():
+            if time.monotonic() > deadline:
+                raise TimeoutError("reset service did not answer")
+            time.sleep(0.01)
+        return future.result()
+
+
+def _restore_env(name: str, value: str | None) -> None:
+    if value is None:
+        os.environ.pop(name, None)
+    else:
+        os.environ[name] = value
+
+
+def _param_text(value: Any) -> str:
+    """A parameter value as ``--ros-args -p`` text (YAML)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ",".join(_param_text(v) for v in value) + "]"
+    if isinstance(value, str):
+        return value
+    return repr(value)
