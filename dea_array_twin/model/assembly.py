@@ -70,15 +70,12 @@ class PointState:
 
     Attributes
     ----------
-    f : ndarray, shape (ne, 3, nq, 2)
-        Deformation gradient ``F``.
     c : ndarray, shape (ne, nq, 3)
         Voigt ``(C11, C22, C12)``.
     g : ndarray, shape (ne, nq, 3)
         ``dPsi/dc``; the second Piola-Kirchhoff stress is ``[[2 g0, g2], [g2, 2 g1]]``.
     """
 
-    f: np.ndarray
     c: np.ndarray
     g: np.ndarray
 
@@ -136,7 +133,7 @@ def internal_forces(disc: Discretisation, x: np.ndarray, yeoh: Yeoh, maxwell: np
     f = deformation_gradient(disc, x)
     c = cauchy_green(f)
     g = energy_gradient(c, yeoh, maxwell[:, None])
-    return _scatter(disc, f, g, thickness), PointState(f, c, g)
+    return _scatter(disc, f, g, thickness), PointState(c, g)
 
 
 def element_tangents(disc: Discretisation, x: np.ndarray, yeoh: Yeoh, maxwell: np.ndarray,
@@ -180,6 +177,8 @@ class SparsePattern:
         cols = np.tile(dofs, (1, k)).ravel()
         keys, self._inverse = np.unique(rows * n_dofs + cols, return_inverse=True)
         self.rows, self.cols = keys // n_dofs, keys % n_dofs
+        #: Index into the nonzeros of entry ``(p, s)`` of element ``e``'s matrix, shape (ne, k, k).
+        self.element_positions = self._inverse.reshape(dofs.shape[0], k, k)
         self.n_dofs = n_dofs
         self._blocks: dict[tuple[bytes, bytes], tuple] = {}
 

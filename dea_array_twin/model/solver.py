@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse.linalg as spla
 
-from .assembly import element_tangents, internal_forces
+from .kernels import internal_forces, tangent_values
 from .membrane import DRIVEN, MembraneModel
 
 
@@ -134,7 +134,13 @@ class SolveStats:
 
 
 def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
-    """Assemble ``K`` from element matrices and factor its free-free block.
+    """Assemble ``K`` from element matrices ``ke`` and factor its free-free block (:func:`factorise_values`)."""
+    return factorise_values(model, model.pattern.values(ke), free, prescribed)
+
+
+def factorise_values(model: MembraneModel, values: np.ndarray, free: np.ndarray,
+                     prescribed: np.ndarray) -> Factorisation:
+    """Factor the free-free block of the tangent whose nonzeros in ``model.pattern`` are ``values``.
 
     The factorisation uses diagonal pivots in a symmetric ordering, so it is an
     ``LDL^T`` in disguise: by Sylvester's law of inertia the number of negative
@@ -142,7 +148,6 @@ def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed
     minimum).  If SuperLU had to pivot off the diagonal the inertia is unknown and
     ``negative_pivots`` is -1.
     """
-    values = model.pattern.values(ke)
     k_ff = model.pattern.block(values, free, free).tocsc()  # symmetric: CSR data is CSC
     k_fp = model.pattern.block(values, free, prescribed)
     lu = spla.splu(k_ff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
@@ -187,8 +192,8 @@ class EquilibriumSolver:
                 stats.residual_norm = float(peak)
                 return x, r, point, fact
             if fact is None:
-                r, ke = element_tangents(m.disc, x, *args)
-                fact = factorise(m, ke, free, prescribed)
+                r, values = tangent_values(m.disc, m.pattern, x, *args)
+                fact = factorise_values(m, values, free, prescribed)
                 stats.factorisations += 1
                 fresh = True
             dx = -fact.solve(r[free])
@@ -275,8 +280,9 @@ class EquilibriumSolver:
                 continue
             x_new, r, point, fact_used = outcome
             if t < 1.0 or check or fact_used is None:
-                _, ke = element_tangents(m.disc, x_new, m.yeoh, m.maxwell(v0 + t * (v1 - v0)), m.thickness)
-                fact_new = factorise(m, ke, free, prescribed)
+                _, values = tangent_values(m.disc, m.pattern, x_new, m.yeoh, m.maxwell(v0 + t * (v1 - v0)),
+                                           m.thickness)
+                fact_new = factorise_values(m, values, free, prescribed)
                 stats.factorisations += 1
                 if start_stable and fact_new.negative_pivots > 0 and t - done > s.unstable_step:
                     retries += 1  # a long step onto an unstable state: retry it in halves

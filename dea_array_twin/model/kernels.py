@@ -1,0 +1,193 @@
+"""Compiled (numba) element loops for the residual and the tangent: the solver's hot path.
+
+The same equations as the numpy reference in :mod:`.assembly` (which the tests compare
+these against to 1e-12 relative), written as one loop over elements and quadrature
+points that keeps every intermediate in registers instead of arrays of shape
+``(ne, nq, ...)``.  With ``F = [F1 F2]`` (3x2), ``g = dPsi/dc``, ``H = d2Psi/dc2``
+(:mod:`.material`) and the reference gradients ``dN_a = (dN_a1, dN_a2)``:
+
+    r_a  = t0 sum_q w_q  F S dN_a,            S = [[2 g0, g2], [g2, 2 g1]],
+    K_ab = t0 sum_q w_q (F M_ab F^T + (dN_a . S dN_b) I_3),
+    M_ab = T_a^T H T_b,                       T_a = [[2 dN_a1, 0], [0, 2 dN_a2], [dN_a2, dN_a1]],
+
+which is ``B_a^T H B_b`` of :mod:`.assembly` with ``B_a = T_a F^T`` (each row of
+``B_a`` is a combination of ``F1`` and ``F2``).  The tangent is summed straight into
+the nonzeros of the global :class:`~.assembly.SparsePattern`, so no element matrices
+are stored.
+
+Compiled on first use and cached on disk (``cache=True``) next to this module, so a
+new process loads them in well under a second; ``nogil=True`` lets other Python
+threads (the ROS executor) run during a solve.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .assembly import Discretisation, PointState, SparsePattern
+from .material import Yeoh
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@numba.njit(inline="always", **_JIT)
+def _point(xe, dn, k, c10, c20, c30, f, c_out, g_out):
+    """Kinematics and stress at one point: fills ``f`` (3x2), returns ``(det C, Y', Y'')``.
+
+    Also writes ``c = (F1.F1, F2.F2, F1.F2)`` and ``g = Y' dI - k dJ2`` (with
+    ``I = tr C + 1/det C``, :func:`.material.energy_gradient`) into ``c_out``, ``g_out``.
+    """
+    for i in range(3):
+        f0 = 0.0
+        f1 = 0.0
+        for n in range(dn.shape[0]):
+            f0 += xe[n, i] * dn[n, 0]
+            f1 += xe[n, i] * dn[n, 1]
+        f[i, 0] = f0
+        f[i, 1] = f1
+    c0 = f[0, 0] * f[0, 0] + f[1, 0] * f[1, 0] + f[2, 0] * f[2, 0]
+    c1 = f[0, 1] * f[0, 1] + f[1, 1] * f[1, 1] + f[2, 1] * f[2, 1]
+    c2 = f[0, 0] * f[0, 1] + f[1, 0] * f[1, 1] + f[2, 0] * f[2, 1]
+    det = c0 * c1 - c2 * c2
+    xi = c0 + c1 + 1.0 / det - 3.0
+    dy = c10 + xi * (2.0 * c20 + 3.0 * c30 * xi)
+    ddy = 2.0 * c20 + 6.0 * c30 * xi
+    a = dy / det**2
+    c_out[0], c_out[1], c_out[2] = c0, c1, c2
+    g_out[0] = dy - (a + k) * c1
+    g_out[1] = dy - (a + k) * c0
+    g_out[2] = 2.0 * (a + k) * c2
+    return det, dy, ddy
+
+
+@numba.njit(**_JIT)
+def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
+    """Fill ``r`` (zeroed here), ``c`` and ``g`` (shape (ne, nq, 3)) of positions ``x``."""
+    ne, nq, nen, _ = grad.shape
+    r[:] = 0.0
+    xe = np.empty((nen, 3))
+    f = np.empty((3, 2))
+    for e in range(ne):
+        for n in range(nen):
+            for i in range(3):
+                xe[n, i] = x[3 * elements[e, n] + i]
+        k = maxwell[e]
+        for q in range(nq):
+            dn = grad[e, q]
+            _point(xe, dn, k, c10, c20, c30, f, c[e, q], g[e, q])
+            w = wt[e, q]
+            s00, s11, s01 = 2.0 * g[e, q, 0] * w, 2.0 * g[e, q, 1] * w, g[e, q, 2] * w
+            for n in range(nen):
+                sd0 = s00 * dn[n, 0] + s01 * dn[n, 1]
+                sd1 = s01 * dn[n, 0] + s11 * dn[n, 1]
+                base = 3 * elements[e, n]
+                for i in range(3):
+                    r[base + i] += f[i, 0] * sd0 + f[i, 1] * sd1
+
+
+@numba.njit(**_JIT)
+def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, values):
+    """Fill ``r``, ``c``, ``g`` and the global tangent nonzeros ``values`` (zeroed here).
+
+    ``position[e, p, s]`` is the index into ``values`` of local dofs ``(p, s)`` of
+    element ``e`` (:attr:`.SparsePattern.element_positions`).
+    """
+    ne, nq, nen, _ = grad.shape
+    nk = 3 * nen
+    r[:] = 0.0
+    values[:] = 0.0
+    xe = np.empty((nen, 3))
+    f = np.empty((3, 2))
+    ht = np.empty((nen, 3, 2))  # H T_b
+    ke = np.empty((nk, nk))
+    for e in range(ne):
+        for n in range(nen):
+            for i in range(3):
+                xe[n, i] = x[3 * elements[e, n] + i]
+        k = maxwell[e]
+        ke[:, :] = 0.0
+        for q in range(nq):
+            dn = grad[e, q]
+            det, dy, ddy = _point(xe, dn, k, c10, c20, c30, f, c[e, q], g[e, q])
+            w = wt[e, q]
+            c0, c1, c2 = c[e, q, 0], c[e, q, 1], c[e, q, 2]
+            # H = Y'' dI dI^T + Y' 2 det^-3 dJ dJ^T - (Y' det^-2 + k) d2J  (material.energy_derivatives)
+            inv2 = 1.0 / det**2
+            dj0, dj1, dj2 = c1, c0, -2.0 * c2
+            di0, di1, di2 = 1.0 - inv2 * dj0, 1.0 - inv2 * dj1, -inv2 * dj2
+            b = 2.0 * dy * inv2 / det
+            m = dy * inv2 + k
+            h00 = ddy * di0 * di0 + b * dj0 * dj0
+            h11 = ddy * di1 * di1 + b * dj1 * dj1
+            h22 = ddy * di2 * di2 + b * dj2 * dj2 + 2.0 * m
+            h01 = ddy * di0 * di1 + b * dj0 * dj1 - m
+            h02 = ddy * di0 * di2 + b * dj0 * dj2
+            h12 = ddy * di1 * di2 + b * dj1 * dj2
+            s00, s11, s01 = 2.0 * g[e, q, 0] * w, 2.0 * g[e, q, 1] * w, g[e, q, 2] * w
+            for n in range(nen):
+                a1, a2 = 2.0 * w * dn[n, 0], w * dn[n, 1]  # alpha_n = (2 dN1, 0, dN2), times w
+                b1, b2 = 2.0 * w * dn[n, 1], w * dn[n, 0]  # beta_n  = (0, 2 dN2, dN1), times w
+                ht[n, 0, 0] = h00 * a1 + h02 * a2
+                ht[n, 1, 0] = h01 * a1 + h12 * a2
+                ht[n, 2, 0] = h02 * a1 + h22 * a2
+                ht[n, 0, 1] = h01 * b1 + h02 * b2
+                ht[n, 1, 1] = h11 * b1 + h12 * b2
+                ht[n, 2, 1] = h12 * b1 + h22 * b2
+                sd0 = s00 * dn[n, 0] + s01 * dn[n, 1]
+                sd1 = s01 * dn[n, 0] + s11 * dn[n, 1]
+                base = 3 * elements[e, n]
+                for i in range(3):
+                    r[base + i] += f[i, 0] * sd0 + f[i, 1] * sd1
+            for na in range(nen):
+                da0, da1 = dn[na, 0], dn[na, 1]
+                sa0 = s00 * da0 + s01 * da1
+                sa1 = s01 * da0 + s11 * da1
+                for nb in range(na, nen):
+                    db0, db1 = dn[nb, 0], dn[nb, 1]
+                    m00 = 2.0 * da0 * ht[nb, 0, 0] + da1 * ht[nb, 2, 0]
+                    m01 = 2.0 * da0 * ht[nb, 0, 1] + da1 * ht[nb, 2, 1]
+                    m10 = 2.0 * da1 * ht[nb, 1, 0] + da0 * ht[nb, 2, 0]
+                    m11 = 2.0 * da1 * ht[nb, 1, 1] + da0 * ht[nb, 2, 1]
+                    geo = sa0 * db0 + sa1 * db1
+                    for j in range(3):
+                        u0 = m00 * f[j, 0] + m01 * f[j, 1]
+                        u1 = m10 * f[j, 0] + m11 * f[j, 1]
+                        for i in range(3):
+                            ke[3 * na + i, 3 * nb + j] += f[i, 0] * u0 + f[i, 1] * u1
+                    for i in range(3):
+                        ke[3 * na + i, 3 * nb + i] += geo
+        for na in range(nen):  # the upper node blocks were summed; mirror them
+            for nb in range(na, nen):
+                for i in range(3):
+                    for j in range(3):
+                        v = ke[3 * na + i, 3 * nb + j]
+                        values[position[e, 3 * na + i, 3 * nb + j]] += v
+                        if nb != na:
+                            values[position[e, 3 * nb + j, 3 * na + i]] += v
+
+
+def internal_forces(disc: Discretisation, x: np.ndarray, yeoh: Yeoh, maxwell: np.ndarray,
+                    thickness: float) -> tuple[np.ndarray, PointState]:
+    """Compiled :func:`.assembly.internal_forces`: internal forces [N] and the point state."""
+    ne, nq = disc.weight.shape
+    r = np.empty(disc.n_dofs)
+    c, g = np.empty((ne, nq, 3)), np.empty((ne, nq, 3))
+    _residual(x, disc.mesh.elements, disc.grad, thickness * disc.weight, maxwell,
+              yeoh.c10, yeoh.c20, yeoh.c30, r, c, g)
+    return r, PointState(c, g)
+
+
+def tangent_values(disc: Discretisation, pattern: SparsePattern, x: np.ndarray, yeoh: Yeoh,
+                   maxwell: np.ndarray, thickness: float) -> tuple[np.ndarray, np.ndarray]:
+    """Internal forces [N] and the global tangent's nonzeros [N/m] in ``pattern`` order.
+
+    The compiled form of ``pattern.values(element_tangents(...)[1])`` (:mod:`.assembly`).
+    """
+    ne, nq = disc.weight.shape
+    r = np.empty(disc.n_dofs)
+    c, g = np.empty((ne, nq, 3)), np.empty((ne, nq, 3))
+    values = np.empty(pattern.rows.size)
+    _tangent(x, disc.mesh.elements, disc.grad, thickness * disc.weight, maxwell,
+             yeoh.c10, yeoh.c20, yeoh.c30, pattern.element_positions, r, c, g, values)
+    return r, values
