@@ -27,9 +27,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse.linalg as spla
 
 from .kernels import internal_forces, tangent_values
+from .linsolve import BACKENDS, Factoriser, LDLFactor
 from .membrane import DRIVEN, MembraneModel
 
 
@@ -80,22 +80,37 @@ class NewtonSettings:
     check_stability: bool = True
     unstable_step: float = 1.0 / 32.0
     long_jump: float = 0.1
+    linear_solver: str = "auto"
+
+    def __post_init__(self) -> None:
+        if self.linear_solver not in BACKENDS:
+            raise ValueError(f"linear_solver must be one of {BACKENDS}, got {self.linear_solver!r}")
 
 
 @dataclass
 class Factorisation:
-    """An LDL^T-type factorisation of ``K_ff`` and the ``K_fp`` block at one state."""
+    """An ``LDL^T`` factorisation of ``K_ff`` and the ``K_fp`` block at one state (:mod:`.linsolve`)."""
 
-    lu: object
+    factor: LDLFactor
     k_fp: object
     free: np.ndarray
     prescribed: np.ndarray
-    negative_pivots: int
     _influence: dict = field(default_factory=dict)
+    _negative: int | None = None
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``K_ff^-1 b``."""
-        return self.lu.solve(b)
+        return self.factor.solve(b)
+
+    @property
+    def negative_pivots(self) -> int:
+        """Number of negative eigenvalues of ``K_ff`` (0: a stable minimum), -1 if unknown.
+
+        Read from ``D`` on first access (by Sylvester's law of inertia).
+        """
+        if self._negative is None:
+            self._negative = self.factor.negative_pivots()
+        return self._negative
 
     def predict(self, dxp: np.ndarray, groups: list[np.ndarray]) -> np.ndarray:
         """Linear response ``-K_ff^-1 K_fp dxp`` of the free dofs to a prescribed change.
@@ -133,30 +148,12 @@ class SolveStats:
     stability_checked: bool = False
 
 
-def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
-    """Assemble ``K`` from element matrices ``ke`` and factor its free-free block (:func:`factorise_values`)."""
-    return factorise_values(model, model.pattern.values(ke), free, prescribed)
-
-
-def factorise_values(model: MembraneModel, values: np.ndarray, free: np.ndarray,
-                     prescribed: np.ndarray) -> Factorisation:
-    """Factor the free-free block of the tangent whose nonzeros in ``model.pattern`` are ``values``.
-
-    The factorisation uses diagonal pivots in a symmetric ordering, so it is an
-    ``LDL^T`` in disguise: by Sylvester's law of inertia the number of negative
-    pivots is the number of negative eigenvalues of ``K_ff`` (0 for a stable
-    minimum).  If SuperLU had to pivot off the diagonal the inertia is unknown and
-    ``negative_pivots`` is -1.
-    """
-    k_ff = model.pattern.block(values, free, free).tocsc()  # symmetric: CSR data is CSC
-    k_fp = model.pattern.block(values, free, prescribed)
-    lu = spla.splu(k_ff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                   options={"SymmetricMode": True})
-    if np.array_equal(lu.perm_r, lu.perm_c):
-        negative = int(np.count_nonzero(lu.U.diagonal() < 0))
-    else:
-        negative = -1
-    return Factorisation(lu, k_fp, free, prescribed, negative)
+def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray,
+              backend: str = "auto") -> Factorisation:
+    """Assemble ``K`` from element matrices ``ke`` and factor its free-free block (no reuse)."""
+    values = model.pattern.values(ke)
+    factor = Factoriser(model.pattern, free, backend).factor(values)
+    return Factorisation(factor, model.pattern.block(values, free, prescribed), free, prescribed)
 
 
 class EquilibriumSolver:
@@ -166,6 +163,21 @@ class EquilibriumSolver:
         self.model = model
         self.settings = settings or NewtonSettings()
         self.factorisation: Factorisation | None = None
+        self._factorisers: dict[bytes, Factoriser] = {}
+
+    def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
+        """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``.
+
+        The factorisation at the last converged state (``self.factorisation``) stays valid.
+        """
+        key = free.tobytes()
+        if key not in self._factorisers:
+            if len(self._factorisers) >= 8:  # unit modes rarely change; keep the newest few
+                self._factorisers.pop(next(iter(self._factorisers)))
+            self._factorisers[key] = Factoriser(self.model.pattern, free, self.settings.linear_solver)
+        keep = self.factorisation.factor if self.factorisation is not None else None
+        factor = self._factorisers[key].factor(values, keep)
+        return Factorisation(factor, self.model.pattern.block(values, free, prescribed), free, prescribed)
 
     # ------------------------------------------------------------------ one step
     def _newton(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, maxwell: np.ndarray,
@@ -193,7 +205,7 @@ class EquilibriumSolver:
                 return x, r, point, fact
             if fact is None:
                 r, values = tangent_values(m.disc, m.pattern, x, *args)
-                fact = factorise_values(m, values, free, prescribed)
+                fact = self._factorise(values, free, prescribed)
                 stats.factorisations += 1
                 fresh = True
             dx = -fact.solve(r[free])
@@ -282,7 +294,7 @@ class EquilibriumSolver:
             if t < 1.0 or check or fact_used is None:
                 _, values = tangent_values(m.disc, m.pattern, x_new, m.yeoh, m.maxwell(v0 + t * (v1 - v0)),
                                            m.thickness)
-                fact_new = factorise_values(m, values, free, prescribed)
+                fact_new = self._factorise(values, free, prescribed)
                 stats.factorisations += 1
                 if start_stable and fact_new.negative_pivots > 0 and t - done > s.unstable_step:
                     retries += 1  # a long step onto an unstable state: retry it in halves
