@@ -78,10 +78,12 @@ def write_bag(path: Path, messages, metadata=None) -> Path:
     return path
 
 
-def twin_recording(path: Path, names=None, extra=(), with_config=True):
+def twin_recording(path: Path, names=None, extra=(), with_config=True, error=None):
     """A bag like the twin node's recorder writes: commands, outputs 5 ms after each, config metadata.
 
-    Returns the path and the recorded outputs ``[(t_ns, force, capacitance)]``.
+    ``error(i, force, capacitance) -> (force, capacitance)`` changes the i-th recorded
+    output (a "measurement" that differs from the model by a known amount).  Returns
+    the path and the model's outputs ``[(t_ns, force, capacitance)]`` (before ``error``).
     """
     names = names or {"displacement": "/command/displacement", "voltage": "/command/voltage"}
     cfg = ArrayConfig()
@@ -97,7 +99,9 @@ def twin_recording(path: Path, names=None, extra=(), with_config=True):
         held[kind] = np.array(values)
         res = twin.solve(held["displacement"], held["voltage"], MODES)
         outputs.append((ns(t + 0.005), res.force, res.capacitance))
-    for t, force, cap in outputs:
+    for i, (t, force, cap) in enumerate(outputs):
+        if error is not None:
+            force, cap = error(i, np.array(force), np.array(cap))
         messages += [("/force", FLOATS, floats(force), t), ("/capacitance", FLOATS, floats(cap), t)]
         states = JointState(name=["unit_1", "unit_2", "unit_3"], position=[0.0] * 3, velocity=[0.0] * 3,
                             effort=[float(v) for v in force])
@@ -184,6 +188,78 @@ def test_replay_of_a_twin_recording_reproduces_its_outputs(tmp_path, capsys):
     assert main(["replay", str(out_mcap), "--out", str(tmp_path / "again")]) == 0
     again = np.loadtxt(tmp_path / "again.csv", delimiter=",", skiprows=1)
     np.testing.assert_allclose(again[:, 1:], data[:, 1:], rtol=1e-6, atol=1e-9)
+
+
+def _fit_table(out: str) -> dict[int, list[str]]:
+    """The printed FIT table: unit -> [force FIT, capacitance FIT] as printed."""
+    rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
+    return {int(row[0]): row[1:] for row in rows if len(row) == 3}
+
+
+def test_replay_fit_of_outputs_off_by_a_known_error_is_what_eq_12_gives(tmp_path, capsys):
+    """Recorded outputs = model + a known error e, so eq. 12 gives FIT = 100 (1 - ||e|| /
+    ||x - mean x||) for the recorded series x: the printed FIT must be that, not 100."""
+    rng = np.random.default_rng(3)
+    errors = {}
+
+    def error(i, force, cap):
+        e_f = rng.normal(0.0, 2e-3, 3) * [1, 1, 0]  # N; the free unit 3 stays at 0 force
+        e_c = rng.normal(0.0, 0.5e-12, 3)  # F
+        errors[i] = (e_f, e_c)
+        return force + e_f, cap + e_c
+
+    bag, outputs = twin_recording(tmp_path / "noisy.mcap", error=error)
+    assert main(["replay", str(bag)]) == 0
+    table = _fit_table(capsys.readouterr().out)
+    for kind, col in (("force", 0), ("capacitance", 1)):
+        for unit in (1, 2) if kind == "force" else (1, 2, 3):
+            k = unit - 1
+            model = np.array([o[1 + col][k] for o in outputs])
+            e = np.array([errors[i][col][k] for i in range(len(outputs))])
+            x = model + e
+            expected = 100.0 * (1.0 - np.linalg.norm(e) / np.linalg.norm(x - x.mean()))
+            assert expected < 99.5  # not a perfect fit: the recording differs from the model
+            # the replay reproduces the model to ~1e-6 relative: 0.01 points is generous
+            assert float(table[unit][col]) == pytest.approx(expected, abs=1e-2), (kind, unit)
+
+
+def _ramp_run(n_states: int, step_ns: int):
+    """A replay of a ramp: state j (force j, capacitance 10 j) current from j * step_ns on."""
+    from dea_array_twin.replay.offline import ReplayRun
+
+    values = np.arange(1.0, n_states + 1.0)[:, None] * np.ones((1, 2))
+    return ReplayRun(times_ns=np.arange(1, n_states + 1, dtype=np.int64) * step_ns,
+                     kinds=["displacement"] * n_states, displacement=values, voltage=values, force=values,
+                     capacitance=10 * values, centre_deflection=values, initial_force=np.zeros(2),
+                     initial_capacitance=np.zeros(2))
+
+
+def test_fit_lag_window_pairs_late_outputs_but_reaches_no_further_than_the_lag():
+    """Outputs that lag their states by 2 steps: a window of 2 steps pairs them exactly
+    (FIT 100); a window of 1 step pairs each with the state 1 step later than its own,
+    which eq. 12 scores exactly; no window makes a signal unrelated to the states fit."""
+    from dea_array_twin.replay.offline import compare_outputs
+
+    step = 10_000_000  # 10 ms between states
+    run = _ramp_run(40, step)
+    states = np.vstack([np.zeros((1, 2)), run.force])  # state j current from j * step on
+    j = np.arange(3, 41)
+    times = (j * step + step // 2).astype(np.int64)  # the output at (j + 0.5) step shows state j - 2
+    late = states[j - 2]
+    recorded = {"force": (times, late)}
+    expected_0 = fit(late[:, 0], states[j, 0])
+    assert 50.0 < expected_0 < 99.0
+    np.testing.assert_allclose(compare_outputs(run, recorded, lag_ns=0)["force"], expected_0, atol=1e-12)
+    assert np.all(compare_outputs(run, recorded, lag_ns=2 * step)["force"] == 100.0)
+    np.testing.assert_allclose(compare_outputs(run, recorded, lag_ns=step)["force"],
+                               fit(late[:, 0], states[j - 1, 0]), atol=1e-12)
+    # A signal unrelated to the states (alternating far above and below them) gets no
+    # better than pairing it with its current state gives, whatever the window.
+    unrelated = states[j] + np.where(np.arange(j.size) % 2, 50.0, -50.0)[:, None]
+    honest = fit(unrelated[:, 0], states[j, 0])
+    assert honest < 5.0
+    for lag in (0, step, 5 * step):
+        assert compare_outputs(run, {"force": (times, unrelated)}, lag_ns=lag)["force"][0] < honest + 10.0
 
 
 def test_a_solver_failure_stops_the_replay_with_exit_1_keeping_the_states_before_it(tmp_path, capsys,
