@@ -67,7 +67,7 @@ setup(
     # ROS wheels must never be pulled in over a full ROS install.
     install_requires=['numpy', 'scipy', 'numba', 'qdldl', 'gmsh', 'pyyaml', 'tqdm'],
     extras_require={
-        'test': ['pytest', 'import-linter>=2.1', 'ruff'],
+        'test': ['pytest', 'pytest-timeout', 'import-linter>=2.1', 'ruff'],
         'mcap': ['mcap>=1.5', 'mcap-ros2-support', 'rosbags'],
         'plot': ['matplotlib'],
         'cluster': ['dask[distributed]>=2024.1'],

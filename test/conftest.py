@@ -32,3 +32,44 @@ def coarse_yaml(tmp_path):
     path = tmp_path / "coarse.yaml"
     path.write_text(yaml.safe_dump(COARSE))
     return path
+
+
+class OutputLines:
+    """The lines a subprocess prints, read by a thread, so a test can wait for one with a deadline.
+
+    ``proc.stdout.readline()`` blocks until the process prints or exits, which defeats
+    any deadline around it; :meth:`wait_for` does not.
+    """
+
+    def __init__(self, stream):
+        import queue
+        import threading
+
+        self.lines: list[str] = []
+        self._queue: "queue.Queue[str | None]" = queue.Queue()
+        self._thread = threading.Thread(target=self._read, args=(stream,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream) -> None:
+        for line in iter(stream.readline, ""):
+            self._queue.put(line)
+        self._queue.put(None)  # end of output
+
+    def wait_for(self, predicate, timeout: float) -> bool:
+        """Collect lines until ``predicate(self.lines)`` holds (True) or ``timeout`` s pass or output ends (False)."""
+        import queue
+        import time
+
+        deadline = time.monotonic() + timeout
+        while not predicate(self.lines):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            try:
+                line = self._queue.get(timeout=left)
+            except queue.Empty:
+                return False
+            if line is None:
+                return predicate(self.lines)
+            self.lines.append(line)
+        return True

@@ -17,6 +17,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
+from conftest import OutputLines
 
 PACKAGE = 'dea_array_twin'
 EXECUTABLE = 'dea-twin'
@@ -85,7 +86,6 @@ def test_ros2_run_finds_the_node_executables(executable):
 def test_installed_twin_node_starts_and_stops_on_sigint(tmp_path):
     """The lib/ launcher runs the real node: it logs that it is ready, and SIGINT ends it with 0."""
     import signal
-    import time
 
     from domain_coordinator import domain_id
 
@@ -96,12 +96,9 @@ def test_installed_twin_node_starts_and_stops_on_sigint(tmp_path):
                                  'update_rate:=20.0'], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, text=True)
         try:
-            deadline = time.monotonic() + 60
-            line = ''
-            while 'ready' not in line and time.monotonic() < deadline:
-                line = proc.stdout.readline()
-                assert line or proc.poll() is None, 'twin_node exited before it was ready'
-            assert 'ready' in line
+            output = OutputLines(proc.stdout)
+            ready = output.wait_for(lambda lines: any('ready' in line for line in lines), timeout=60)
+            assert ready, f'twin_node not ready within 60 s (exit code {proc.poll()}): {output.lines}'
             proc.send_signal(signal.SIGINT)
             assert proc.wait(timeout=20) == 0
         finally:

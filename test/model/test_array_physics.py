@@ -245,3 +245,37 @@ def test_corner_area_stretch_is_lp_squared_flat_and_grows_around_a_deflected_ind
     np.testing.assert_allclose(flat, 1.10**2, rtol=1e-12)
     pushed = twin.model.corner_area_stretch(twin.solve([0, 0.015, 0], 0.0, FREE_CENTRE).positions)
     assert pushed.max() > 1.5 * 1.10**2 and pushed.min() > 0.9 * 1.10**2
+
+
+def test_a_15_mm_jump_is_cut_into_load_steps_and_lands_on_the_stepped_solution(make_twin):
+    """From the flat membrane a 15 mm jump is too far for Newton in one step (the flat
+    state has no out-of-plane stiffness from bending, only the pre-stress): the solver
+    halves the step until Newton converges and reaches the solution of a finely
+    stepped path.  Without step cuts the same jump fails."""
+    twin = make_twin(**COARSE)
+    jump = twin.solve([0, 0.015, 0], 0.0, FREE_CENTRE)
+    assert jump.step_cuts >= 1
+    stepped = make_twin(**COARSE)
+    for d in np.linspace(0.0, 0.015, 31)[1:]:
+        ref = stepped.solve([0, d, 0], 0.0, FREE_CENTRE)
+    np.testing.assert_allclose(jump.force, ref.force, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(jump.capacitance, ref.capacitance, rtol=1e-8)
+    strict = make_twin(settings=NewtonSettings(max_step_cuts=0), **COARSE)
+    with pytest.raises(ConvergenceError, match="after 0 step cuts"):
+        strict.solve([0, 0.015, 0], 0.0, FREE_CENTRE)
+
+
+def test_a_free_unit_that_becomes_driven_reaches_the_cold_solution(make_twin):
+    """Unit 1 follows its neighbour while free, then is driven from there: the state
+    equals a solve of the final command from the flat membrane."""
+    twin = make_twin(**COARSE)
+    free = twin.solve([0, 0.010, 0], 0.0, FREE_CENTRE)
+    z1 = free.centre_deflection[0]
+    assert 0.0005 < z1 < 0.003  # pulled up by unit 2 through the membrane
+    assert free.displacement[0] == z1  # a free unit reports where its centre is
+    modes = ("driven", "driven", "free")
+    switched = twin.solve([0.004, 0.010, 0], 0.0, modes)
+    cold = make_twin(**COARSE).solve([0.004, 0.010, 0], 0.0, modes)
+    np.testing.assert_allclose(switched.force, cold.force, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(switched.positions, cold.positions, atol=2e-9)  # increment_tol 1e-7 D = 2 nm
+    assert switched.force[0] > 0.05 and switched.centre_deflection[0] == pytest.approx(0.004, abs=1e-12)

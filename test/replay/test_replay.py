@@ -397,7 +397,7 @@ def test_plot_writes_a_png_of_a_recording_and_of_a_replay(tmp_path, capsys):
 def test_realtime_replay_republishes_commands_in_order_with_scaled_timing(tmp_path, monkeypatch):
     from domain_coordinator import domain_id
 
-    spacing, count, rate = 0.4, 8, 4.0  # 2.8 s of recording -> 0.7 s at 4x
+    spacing, count, rate = 0.4, 8, 2.0  # 2.8 s of recording -> 1.4 s at 2x
     messages = []
     for i in range(count):
         messages.append(("/command/displacement", FLOATS, floats([0.0, 1e-4 * i, 0.0]), ns(i * spacing)))
@@ -455,10 +455,14 @@ def test_realtime_replay_republishes_commands_in_order_with_scaled_timing(tmp_pa
         volt = received.get(("command/voltage", qos), [])
         assert [v[1] for _, v in disp] == pytest.approx([1e-4 * i for i in range(count)]), qos
         assert [v[1] for _, v in volt] == pytest.approx([100.0 * i for i in range(count)]), qos
-        # scaled timing: a message every spacing / rate = 0.1 s on each topic, the span 0.7 s
+        # Scaled timing: a message every spacing / rate = 0.2 s on each topic, the span 1.4 s.
+        # Arrival times carry the transport's latency, which a loaded machine stretches
+        # now and then: medians and a span bounded mostly from below (the replay may run
+        # late, never early) keep the test about the schedule, not the scheduler.
+        gap = spacing / rate
         span = disp[-1][0] - disp[0][0]
-        assert span == pytest.approx((count - 1) * spacing / rate, abs=0.15), qos
-        gaps = np.diff([t for t, _ in disp])
-        assert np.all(gaps > 0.4 * spacing / rate) and np.all(gaps < 2.5 * spacing / rate), (qos, gaps)
-        offset = volt[0][0] - disp[0][0]  # voltage 0.2 s after displacement in the bag -> 0.05 s
-        assert offset == pytest.approx(0.2 / rate, abs=0.04), qos
+        assert (count - 1) * gap - 0.15 < span < (count - 1) * gap + 1.0, qos
+        assert np.median(np.diff([t for t, _ in disp])) == pytest.approx(gap, abs=0.05), qos
+        # voltage 0.2 s after each displacement in the bag -> 0.1 s
+        offsets = [tv - td for (td, _), (tv, _) in zip(disp, volt)]
+        assert np.median(offsets) == pytest.approx(0.2 / rate, abs=0.05), (qos, offsets)
