@@ -13,6 +13,7 @@ from dea_array_twin import (
     NewtonSettings,
 )
 from dea_array_twin.model.material import EPS0
+from dea_array_twin.model.twin import command_error
 
 
 @pytest.mark.parametrize("prestretch", [1.1, 1.2])
@@ -279,3 +280,31 @@ def test_a_free_unit_that_becomes_driven_reaches_the_cold_solution(make_twin):
     np.testing.assert_allclose(switched.force, cold.force, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(switched.positions, cold.positions, atol=2e-9)  # increment_tol 1e-7 D = 2 nm
     assert switched.force[0] > 0.05 and switched.centre_deflection[0] == pytest.approx(0.004, abs=1e-12)
+
+
+@pytest.mark.parametrize("kind, values, reason", [
+    ("displacement", [0.0, 0.0301, 0.0], "beyond max_displacement"),
+    ("displacement", [-0.0301, 0.0, 0.0], "beyond max_displacement"),
+    ("displacement", [0.0, 0.01], "has 2 values, expected 3"),
+    ("displacement", [0.0, math.inf, 0.0], "NaN or inf"),
+    ("voltage", [0.0, -1.0, 0.0], "negative voltage"),
+    ("voltage", [0.0, 6199.0, 0.0], "above 6198 V"),
+    ("voltage", [math.nan, 0.0, 0.0], "NaN or inf"),
+])
+def test_commands_outside_the_limits_are_rejected_with_the_reason(kind, values, reason):
+    """What the node and the replay refuse: the limits are max_displacement = 30 mm either
+    way, and the voltage whose flat pre-stretched field lp^2 V / t0 reaches
+    breakdown_field = 150 V/um, 150e6 * 50e-6 / 1.1^2 = 6198.3 V."""
+    assert reason in command_error(kind, values, ArrayConfig())
+
+
+@pytest.mark.parametrize("kind, values", [
+    ("displacement", [0.0, 0.030, -0.030]),  # at the limit, either way
+    ("voltage", [0.0, 6198.0, 0.0]),  # just below the breakdown limit
+    ("voltage", [0.0, 0.0, 0.0]),
+])
+def test_commands_at_the_limits_are_accepted(kind, values):
+    assert command_error(kind, values, ArrayConfig()) is None
+    v_max = ArrayConfig().hv_voltage(ArrayConfig().breakdown_field)
+    assert command_error("voltage", [v_max, 0.0, 0.0], ArrayConfig()) is None
+    assert command_error(kind, values, ArrayConfig(max_displacement=0.031, breakdown_field=160e6)) is None

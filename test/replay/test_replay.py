@@ -133,6 +133,7 @@ def test_fit_is_100_for_a_perfect_model_0_for_the_mean_and_follows_eq_12():
 def test_fit_of_a_constant_measured_signal_is_nan():
     with np.errstate(all="raise"):  # no division warning either
         assert math.isnan(fit([0.0, 0.0, 0.0], [0.0, 0.1, 0.0]))
+        assert math.isnan(fit([2.0], [1.0]))  # one sample has no spread
         assert math.isnan(fit([0.1] * 7, [0.1] * 7))
         assert math.isnan(fit([], []))
     with pytest.raises(ValueError, match="same shape"):
@@ -253,6 +254,20 @@ def test_fit_lag_window_pairs_late_outputs_but_reaches_no_further_than_the_lag()
     assert np.all(compare_outputs(run, recorded, lag_ns=2 * step)["force"] == 100.0)
     np.testing.assert_allclose(compare_outputs(run, recorded, lag_ns=step)["force"],
                                fit(late[:, 0], states[j - 1, 0]), atol=1e-12)
+    # Late by one step in a window of three: the pairing picks the state that fits,
+    # not the oldest or the newest candidate, unit by unit the same state.
+    one_late = states[j - 1] * [1.0, 2.0]
+    run.force[:, 1] *= 2.0
+    assert np.all(compare_outputs(run, {"force": (times, one_late)}, lag_ns=3 * step)["force"] == 100.0)
+    run.force[:, 1] /= 2.0
+    # A recorded output logged at the very instant of its command (as an offline replay
+    # writes them) shows the new state.
+    at_command = (j * step).astype(np.int64)
+    assert np.all(compare_outputs(run, {"force": (at_command, states[j])}, lag_ns=0)["force"] == 100.0)
+    # The window is (t - lag, t]: a state replaced exactly at t - lag is no candidate.
+    three_late = states[j - 3]
+    np.testing.assert_allclose(compare_outputs(run, {"force": (at_command, three_late)}, lag_ns=2 * step)["force"],
+                               fit(three_late[:, 0], states[j - 2, 0]), atol=1e-12)
     # A signal unrelated to the states (alternating far above and below them) gets no
     # better than pairing it with its current state gives, whatever the window.
     unrelated = states[j] + np.where(np.arange(j.size) % 2, 50.0, -50.0)[:, None]
