@@ -10,10 +10,18 @@ reduce it.  The solver
   displacements and voltages interpolated linearly, and a frame that is not yet
   where the slip table of eq. 11 puts it moved there gradually), halving the step
   when Newton fails and growing it again after successes;
-* predicts each step with the tangent of the last converged state
-  (``x_f += -K_ff^-1 K_fp dx_p``), so small increments need one or two iterations;
+* predicts each step with the last tangent (``x_f += -K_ff^-1 K_fp dx_p``), factored
+  at the start state when there is none yet (a fresh twin: the flat membrane's
+  tangent gives the first step's shape, so a 15 mm jump converges in one step);
+* when a solve continues the last one (same free dofs and voltage, starting where
+  it ended) and the prescribed change is ``s dp + rest`` for the last change ``dp``
+  (moving the free dofs by ``dx_f``), predicts ``x_f + s dx_f`` plus the tangent
+  response to ``rest``; with a tangent at the start state itself, the quadratic
+  extrapolation ``x_f + (s + s^2) T dp - s^2 dx_f`` (``T dp`` the tangent response):
+  along a smooth command path (a curve, a sine, a reversal) this leaves a much
+  smaller residual than the tangent of an older state;
 * may reuse the last factorisation for several iterations (modified Newton) and
-  refactors when the residual stops falling fast;
+  refactors when the residual falls by less than ``contraction`` per iteration;
 * converges when the residual is below ``residual_tol * force_scale`` and the
   remaining position error, estimated from the last increment and the residual
   reduction ratio ``q`` as ``|dx| q / (1 - q)``, is below
@@ -55,7 +63,10 @@ class NewtonSettings:
         Reuse a factorisation across iterations while the residual falls by at
         least ``contraction`` per iteration.
     contraction : float
-        Required residual reduction factor per modified-Newton iteration.
+        Required residual reduction factor per modified-Newton iteration.  0.3 is
+        the cheapest of 0.02-0.5 over warm updates, curves and cold solves on the
+        1-by-3 (one factorisation costs about 15 iterations there; see
+        ``benchmarks/bench_core.py``); 0.5 kept stale tangents for up to 13 iterations.
     check_stability : bool
         Factor the tangent at the converged state and report its inertia.
     unstable_step : float
@@ -76,7 +87,7 @@ class NewtonSettings:
     max_iterations: int = 30
     max_step_cuts: int = 12
     modified_newton: bool = True
-    contraction: float = 0.5
+    contraction: float = 0.3
     check_stability: bool = True
     unstable_step: float = 1.0 / 32.0
     long_jump: float = 0.1
@@ -95,6 +106,7 @@ class Factorisation:
     k_fp: object
     free: np.ndarray
     prescribed: np.ndarray
+    at_solution: bool = False
     _influence: dict = field(default_factory=dict)
     _negative: int | None = None
 
@@ -164,6 +176,12 @@ class EquilibriumSolver:
         self.settings = settings or NewtonSettings()
         self.factorisation: Factorisation | None = None
         self._factorisers: dict[bytes, Factoriser] = {}
+        self._last_path: tuple | None = None  # (end state, its free and prescribed change, free, voltage)
+
+    def _tangent(self, x: np.ndarray, maxwell: np.ndarray) -> np.ndarray:
+        """Nonzeros of the tangent at ``x`` (:func:`.kernels.tangent_values`)."""
+        m = self.model
+        return tangent_values(m.disc, m.pattern, x, m.yeoh, maxwell, m.thickness)[1]
 
     def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
         """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``.
@@ -261,10 +279,16 @@ class EquilibriumSolver:
         # Without slip it is exactly zero.
         frame = m.mesh.frame_nodes
         lag = x.reshape(-1, 3)[frame] - m.frame_positions(modes, d0)
-        fact = self.factorisation
-        if fact is not None and not np.array_equal(fact.free, free):
-            fact = None
         start_stable = self.factorisation is None or self.factorisation.negative_pivots == 0
+        fact = self.factorisation
+        if fact is None or not np.array_equal(fact.free, free):
+            # No tangent of this free set yet (a fresh twin, new unit modes): one at the
+            # start state gives the linear predictor of the first step.
+            fact = self._factorise(self._tangent(x, m.maxwell(v0)), free, prescribed)
+            stats.factorisations += 1
+            self.factorisation = fact
+        secant = self._secant(x, free, prescribed, d0, d1, v0, v1, modes) if not lag.any() else None
+        x_start = x
         done, step, cuts, retries = 0.0, 1.0, 0, 0
         while done < 1.0:
             t = min(1.0, done + step)
@@ -272,8 +296,16 @@ class EquilibriumSolver:
             m.apply_prescribed(trial, modes, d0 + t * (d1 - d0))
             if lag.any():
                 trial.reshape(-1, 3)[frame] += (1.0 - t) * lag
-            if fact is not None:  # linear predictor from the last converged tangent
-                trial[free] += fact.predict(trial[prescribed] - x[prescribed], groups)
+            change = trial[prescribed] - x[prescribed]
+            if t == 1.0 and done == 0.0 and secant is not None:  # the last solve's path, continued
+                scale, dx_last, dp_last = secant
+                if fact.at_solution:  # the tangent at x itself: quadratic extrapolation (see _secant)
+                    trial[free] += (scale + scale**2) * fact.predict(dp_last, groups) - scale**2 * dx_last
+                    change = change - scale * dp_last
+                else:
+                    trial[free] += scale * dx_last
+                    change = change - scale * dp_last
+            trial[free] += fact.predict(change, groups)  # linear predictor from the last tangent
             outcome = self._newton(trial, free, prescribed, m.maxwell(v0 + t * (v1 - v0)), fact, stats)
             if outcome is None:
                 cuts += 1
@@ -291,10 +323,9 @@ class EquilibriumSolver:
                                               and np.array_equal(self.factorisation.free, free)) else None
                 continue
             x_new, r, point, fact_used = outcome
-            if t < 1.0 or check or fact_used is None:
-                _, values = tangent_values(m.disc, m.pattern, x_new, m.yeoh, m.maxwell(v0 + t * (v1 - v0)),
-                                           m.thickness)
-                fact_new = self._factorise(values, free, prescribed)
+            if check or fact_used is None:
+                fact_new = self._factorise(self._tangent(x_new, m.maxwell(v0 + t * (v1 - v0))), free, prescribed)
+                fact_new.at_solution = True
                 stats.factorisations += 1
                 if start_stable and fact_new.negative_pivots > 0 and t - done > s.unstable_step:
                     retries += 1  # a long step onto an unstable state: retry it in halves
@@ -308,4 +339,30 @@ class EquilibriumSolver:
             step = min(2.0 * step, 1.0)
             self.factorisation = fact
         stats.stability_checked = check
+        self._last_path = (x, x[free] - x_start[free], x[prescribed] - x_start[prescribed], free, v1)
         return x, r, point, stats
+
+    def _secant(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, d0: np.ndarray, d1: np.ndarray,
+                v0: np.ndarray, v1: np.ndarray, modes: tuple[str, ...]) -> tuple | None:
+        """``(s, dx_f, dp)`` when this solve continues the last one: same free dofs and voltage,
+        starting where it ended, the prescribed change ``s dp`` plus a remainder.
+
+        The last solve moved the free dofs by ``dx_f`` for a prescribed change ``dp``; with
+        ``s = <dp_new, dp> / <dp, dp>`` the prediction ``x_f + s dx_f + T (dp_new - s dp)``
+        (``T`` the tangent predictor) is second-order accurate along a smooth command path
+        (a curve, a sine) where the tangent predictor alone is first-order, and exact for a
+        reversal (``s = -1``).
+        """
+        last = self._last_path
+        if (last is None or last[0] is not x and not np.array_equal(last[0], x)
+                or not np.array_equal(last[3], free) or not np.array_equal(v0, v1)
+                or not np.array_equal(last[4], v0)):
+            return None
+        target = x.copy()
+        self.model.apply_prescribed(target, modes, d1)
+        dp_new, dp = target[prescribed] - x[prescribed], last[2]
+        norm2 = float(dp @ dp)
+        if norm2 == 0.0:
+            return None
+        scale = float(dp_new @ dp) / norm2
+        return (scale, last[1], dp) if abs(scale) <= 2.0 else None

@@ -13,6 +13,7 @@ from dea_array_twin import (
     NewtonSettings,
 )
 from dea_array_twin.model.material import EPS0
+from dea_array_twin.model.solver import EquilibriumSolver
 from dea_array_twin.model.twin import command_error
 
 
@@ -225,17 +226,51 @@ def test_bad_command_is_rejected_with_the_reason(make_twin):
 @pytest.mark.parametrize("check_stability", [True, False])
 def test_a_long_step_onto_an_unstable_branch_is_retried_to_the_stable_equilibrium(make_twin, check_stability):
     # Pulling both outer indenters 8 mm out of the flat coarse membrane in one command
-    # once converged to a saddle (tangent indefinite, -44 MPa compression).  The solver
-    # now retries such a step in halves; the answer must match the stable state reached
-    # in small increments.  A jump this long (0.4 D) is checked even when per-update
-    # stability checks are off, as in the node.
+    # once converged to a saddle (tangent indefinite, -44 MPa compression).  The answer
+    # must match the stable state reached in small increments.  The solver now predicts
+    # the first step from the flat state's tangent and lands on the stable state
+    # directly; the retry of a step that lands on a saddle is checked in the test below.
+    # A jump this long (0.4 D) is checked even when per-update stability checks are off.
     stepped = make_twin(**COARSE)
     for d in np.linspace(0.0, 0.008, 5)[1:]:
         reference = stepped.solve([d, 0.0, d], 0.0, ["driven"] * 3)
     assert reference.stable and reference.min_principal_stress > 0
     jump = make_twin(NewtonSettings(check_stability=check_stability), **COARSE).solve(
         [0.008, 0.0, 0.008], 0.0, ["driven"] * 3)
-    assert jump.stable and jump.step_cuts >= 1
+    assert jump.stable
+    np.testing.assert_allclose(jump.force, reference.force, rtol=1e-5, atol=1e-7)
+
+
+def test_a_step_that_lands_on_a_saddle_is_retried_in_halves(make_twin, monkeypatch):
+    """The safety net behind the test above: its first two attempts (8 mm, which fails, and
+    4 mm) are run as the solver did before it had a start predictor (full Newton from the
+    flat membrane with the indenters moved); the 4 mm one converges to a saddle; the
+    solver must see the indefinite tangent, retry in halves and end on the stable state."""
+    stepped = make_twin(**COARSE)
+    for d in np.linspace(0.0, 0.008, 5)[1:]:
+        reference = stepped.solve([d, 0.0, d], 0.0, ["driven"] * 3)
+    twin = make_twin(NewtonSettings(check_stability=False), **COARSE)
+    newton, calls = EquilibriumSolver._newton, []
+
+    def first_steps_without_predictor(self, x, free, prescribed, maxwell, fact, stats):
+        if len(calls) < 2:
+            x = np.where(np.isin(np.arange(x.size), free), self.model.flat_state(), x)
+            fact = None
+        calls.append(fact)
+        return newton(self, x, free, prescribed, maxwell, fact, stats)
+
+    factorise, negative = EquilibriumSolver._factorise, []
+
+    def recording(self, values, free, prescribed):
+        out = factorise(self, values, free, prescribed)
+        negative.append(out.negative_pivots)
+        return out
+
+    monkeypatch.setattr(EquilibriumSolver, "_newton", first_steps_without_predictor)
+    monkeypatch.setattr(EquilibriumSolver, "_factorise", recording)
+    jump = twin.solve([0.008, 0.0, 0.008], 0.0, ["driven"] * 3)
+    assert max(negative) > 0  # the saddle was seen and left
+    assert jump.stable and jump.step_cuts >= 2
     np.testing.assert_allclose(jump.force, reference.force, rtol=1e-5, atol=1e-7)
 
 
@@ -249,19 +284,22 @@ def test_corner_area_stretch_is_lp_squared_flat_and_grows_around_a_deflected_ind
 
 
 def test_a_15_mm_jump_is_cut_into_load_steps_and_lands_on_the_stepped_solution(make_twin):
-    """From the flat membrane a 15 mm jump is too far for Newton in one step (the flat
-    state has no out-of-plane stiffness from bending, only the pre-stress): the solver
-    halves the step until Newton converges and reaches the solution of a finely
-    stepped path.  Without step cuts the same jump fails."""
-    twin = make_twin(**COARSE)
-    jump = twin.solve([0, 0.015, 0], 0.0, FREE_CENTRE)
-    assert jump.step_cuts >= 1
+    """From the flat membrane a 15 mm jump is far for Newton in one step (the flat state
+    has no out-of-plane stiffness from bending, only the pre-stress).  The solver predicts
+    it from the flat state's tangent and converges in one load step; with Newton limited
+    to 6 iterations per step it halves the step until Newton converges.  Both reach the
+    solution of a finely stepped path; without step cuts the limited one fails."""
     stepped = make_twin(**COARSE)
     for d in np.linspace(0.0, 0.015, 31)[1:]:
         ref = stepped.solve([0, d, 0], 0.0, FREE_CENTRE)
-    np.testing.assert_allclose(jump.force, ref.force, rtol=1e-6, atol=1e-9)
-    np.testing.assert_allclose(jump.capacitance, ref.capacitance, rtol=1e-8)
-    strict = make_twin(settings=NewtonSettings(max_step_cuts=0), **COARSE)
+    direct = make_twin(**COARSE).solve([0, 0.015, 0], 0.0, FREE_CENTRE)
+    assert direct.step_cuts == 0
+    jump = make_twin(settings=NewtonSettings(max_iterations=6), **COARSE).solve([0, 0.015, 0], 0.0, FREE_CENTRE)
+    assert jump.step_cuts >= 1
+    for res in (direct, jump):
+        np.testing.assert_allclose(res.force, ref.force, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(res.capacitance, ref.capacitance, rtol=1e-8)
+    strict = make_twin(settings=NewtonSettings(max_iterations=6, max_step_cuts=0), **COARSE)
     with pytest.raises(ConvergenceError, match="after 0 step cuts"):
         strict.solve([0, 0.015, 0], 0.0, FREE_CENTRE)
 

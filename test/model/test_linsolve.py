@@ -11,6 +11,7 @@ from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
 from dea_array_twin.model import kernels
 from dea_array_twin.model.linsolve import Factoriser, resolve_backend
 from dea_array_twin.model.membrane import MembraneModel
+from dea_array_twin.model.solver import SolveStats
 
 
 def _tangent(model: MembraneModel, x: np.ndarray, voltage: np.ndarray) -> np.ndarray:
@@ -24,13 +25,15 @@ def _states():
     _, free_c = circle.prescribed_dofs(("driven",))
     for stretch in (1.1, 0.95):  # pre-stretched (stable) and compressed (many negative eigenvalues)
         yield f"circle lp {stretch}", circle, free_c, _tangent(circle, circle.flat_state() * stretch / 1.1, np.zeros(1))
-    # Both outer indenters pulled 8 mm out of the flat membrane in one unchecked step: a
-    # saddle (a few negative eigenvalues), see test_array_physics.
-    saddle = ArrayTwin(ArrayConfig(**COARSE), NewtonSettings(check_stability=False, long_jump=10.0,
-                                                                unstable_step=10.0))
-    saddle.solve([0.008, 0.0, 0.008], 0.0, ["driven"] * 3)
+    # Both outer indenters pulled 4 mm out of the flat membrane, full Newton from there
+    # without a predictor (what the solver once did): a saddle, see test_array_physics.
+    saddle = ArrayTwin(ArrayConfig(**COARSE))
     _, free_s = saddle.model.prescribed_dofs(["driven"] * 3)
-    yield "saddle", saddle.model, free_s, _tangent(saddle.model, saddle._x, np.zeros(3))
+    prescribed_s = np.setdiff1d(np.arange(saddle.model.disc.n_dofs), free_s)
+    x = saddle.model.flat_state()
+    saddle.model.apply_prescribed(x, ["driven"] * 3, np.array([0.004, 0.0, 0.004]))
+    x = saddle.solver._newton(x, free_s, prescribed_s, np.zeros(saddle.model.mesh.n_elements), None, SolveStats())[0]
+    yield "saddle", saddle.model, free_s, _tangent(saddle.model, x, np.zeros(3))
     deflected = ArrayTwin(ArrayConfig(**COARSE))
     deflected.solve([0, 0.015, 0], [0, 2730.0, 0], FREE_CENTRE)
     _, free_d = deflected.model.prescribed_dofs(FREE_CENTRE)
