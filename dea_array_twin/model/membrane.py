@@ -74,6 +74,7 @@ class MembraneModel:
         self.pattern = _pattern(cfg, self.disc)
         self.yeoh = cfg.yeoh
         self.thickness = cfg.thickness
+        self._dofs: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         mesh = self.mesh
         self._unit_elements = [np.flatnonzero(mesh.element_unit == k) for k in range(cfg.n_units)]
         self._disk_elements = [np.flatnonzero((mesh.element_unit == k) & mesh.element_in_indenter)
@@ -113,12 +114,17 @@ class MembraneModel:
         Prescribed: every dof of the frame nodes (eq. 8) and of the indenter disk of
         each driven unit (eq. 9).
         """
-        nodes = [self.mesh.frame_nodes] + [self.mesh.indenter_nodes[k] for k, m in enumerate(modes) if m == DRIVEN]
-        fixed = np.unique(np.concatenate(nodes))
-        dofs = (3 * fixed[:, None] + np.arange(3)).ravel()
-        mask = np.ones(self.disc.n_dofs, dtype=bool)
-        mask[dofs] = False
-        return dofs, np.flatnonzero(mask)
+        key = tuple(m == DRIVEN for m in modes)
+        if key not in self._dofs:  # read-only arrays, cached per pattern of driven units
+            nodes = [self.mesh.frame_nodes] + [self.mesh.indenter_nodes[k] for k, m in enumerate(modes) if m == DRIVEN]
+            fixed = np.unique(np.concatenate(nodes))
+            dofs = (3 * fixed[:, None] + np.arange(3)).ravel()
+            mask = np.ones(self.disc.n_dofs, dtype=bool)
+            mask[dofs] = False
+            free = np.flatnonzero(mask)
+            dofs.flags.writeable = free.flags.writeable = False
+            self._dofs[key] = (dofs, free)
+        return self._dofs[key]
 
     def edge_stretch(self, modes: Sequence[str], displacement: np.ndarray) -> float:
         """Stretch of the frame along X [-]: ``lp``, or ``1 + (lp - 1) gamma`` with slip (eq. 11).

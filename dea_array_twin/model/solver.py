@@ -176,7 +176,17 @@ class EquilibriumSolver:
         self.settings = settings or NewtonSettings()
         self.factorisation: Factorisation | None = None
         self._factorisers: dict[bytes, Factoriser] = {}
+        self._disk_groups: dict[tuple[str, ...], list[np.ndarray]] = {}
         self._last_path: tuple | None = None  # (end state, its free and prescribed change, free, voltage)
+
+    def _groups(self, modes: tuple[str, ...]) -> list[np.ndarray]:
+        """Index sets into the prescribed dofs of each driven disk's z dofs (rigid moves)."""
+        if modes not in self._disk_groups:
+            m = self.model
+            prescribed = m.prescribed_dofs(modes)[0]
+            self._disk_groups[modes] = [np.flatnonzero(np.isin(prescribed, 3 * m.mesh.indenter_nodes[k] + 2))
+                                        for k, mode in enumerate(modes) if mode == DRIVEN]
+        return self._disk_groups[modes]
 
     def _tangent(self, x: np.ndarray, maxwell: np.ndarray) -> np.ndarray:
         """Nonzeros of the tangent at ``x`` (:func:`.kernels.tangent_values`)."""
@@ -212,28 +222,29 @@ class EquilibriumSolver:
             fact = None
         fresh = False  # whether ``fact`` was computed at the current iterate
         r, point = internal_forces(m.disc, x, *args)
-        norm = np.linalg.norm(r[free])
+        r_f = r[free]
+        norm = np.linalg.norm(r_f)
         last_dx = np.inf
         for _ in range(s.max_iterations):
             if not np.isfinite(norm):
                 return None
-            peak = np.abs(r[free]).max()
+            peak = np.abs(r_f).max()
             if peak <= r_tol and last_dx <= x_tol:
                 stats.residual_norm = float(peak)
                 return x, r, point, fact
             if fact is None:
-                r, values = tangent_values(m.disc, m.pattern, x, *args)
-                fact = self._factorise(values, free, prescribed)
+                fact = self._factorise(self._tangent(x, maxwell), free, prescribed)
                 stats.factorisations += 1
                 fresh = True
-            dx = -fact.solve(r[free])
+            dx = -fact.solve(r_f)
             stats.iterations += 1
             for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):  # backtrack on the residual norm
                 trial = x.copy()
                 trial[free] += alpha * dx
                 r_trial, point_trial = internal_forces(m.disc, trial, *args)
-                norm_trial = np.linalg.norm(r_trial[free])
-                if np.isfinite(norm_trial) and (norm_trial < norm or np.abs(r_trial[free]).max() <= r_tol):
+                r_trial_f = r_trial[free]
+                norm_trial = np.linalg.norm(r_trial_f)
+                if np.isfinite(norm_trial) and (norm_trial < norm or np.abs(r_trial_f).max() <= r_tol):
                     break
             else:
                 if fresh:
@@ -241,7 +252,7 @@ class EquilibriumSolver:
                 fact = None  # a stale tangent failed: refactor here and retry
                 continue
             ratio = norm_trial / norm if norm > 0 else 0.0
-            x, r, point, norm = trial, r_trial, point_trial, norm_trial
+            x, r, r_f, point, norm = trial, r_trial, r_trial_f, point_trial, norm_trial
             # With contraction ratio q the remaining error is about |dx| q / (1 - q)
             # (a geometric series): that is what is tested against the tolerance.
             step_size = alpha * np.abs(dx).max()
@@ -268,8 +279,7 @@ class EquilibriumSolver:
         d0, d1 = np.asarray(start_displacement, float), np.asarray(displacement, float)
         check = check or bool(np.abs(d1 - d0).max(initial=0.0) > s.long_jump * m.length_scale)
         prescribed, free = m.prescribed_dofs(modes)
-        groups = [np.flatnonzero(np.isin(prescribed, 3 * m.mesh.indenter_nodes[k] + 2))
-                  for k, mode in enumerate(modes) if mode == DRIVEN]
+        groups = self._groups(modes)
         stats = SolveStats()
         v0, v1 = np.asarray(start_voltage, float), np.asarray(voltage, float)
         x = x.copy()
