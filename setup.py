@@ -65,7 +65,7 @@ setup(
     # Non-ROS dependencies only. rclpy and the message packages come from the ROS
     # install (colcon) or from requirements-ros.txt (venv, tools/setup.sh); PyPI
     # ROS wheels must never be pulled in over a full ROS install.
-    install_requires=['numpy', 'scipy', 'numba', 'qdldl', 'gmsh', 'pyyaml', 'tqdm'],
+    install_requires=['numpy', 'scipy', 'numba', 'gmsh', 'pyyaml', 'tqdm'],
     extras_require={
         'test': ['pytest', 'pytest-timeout', 'import-linter>=2.1', 'ruff'],
         'mcap': ['mcap>=1.5', 'mcap-ros2-support', 'rosbags'],

@@ -1,92 +1,54 @@
 """Sparse ``LDL^T`` factorisations of the free-free tangent ``K_ff``, with symbolic reuse.
 
 Every tangent of one model has the same sparsity pattern, so the fill-reducing
-ordering and the elimination tree are computed once per set of free dofs
-(:class:`Factoriser`) and each new tangent costs only the numeric factorisation.
+ordering, the elimination tree and the map from the tangent's nonzeros to the
+factor's input are computed once per set of free dofs (:class:`Factoriser`), and each
+new tangent costs only the numeric factorisation.
 
 The factorisation is ``P K_ff P^T = L D L^T`` with unit lower-triangular ``L`` and
-diagonal ``D`` (no pivoting beyond the symmetric ordering).  By Sylvester's law of
-inertia ``D`` has as many negative entries as ``K_ff`` has negative eigenvalues, so
-the stability check (``K_ff`` positive definite: a stable minimum) is a count of
-negative pivots.
+block-diagonal ``D`` (no pivoting beyond the symmetric ordering).  By Sylvester's law
+of inertia ``D`` has as many negative eigenvalues as ``K_ff``, so the stability check
+(``K_ff`` positive definite: a stable minimum) is a count of negative pivots.
 
 Back ends:
 
-* ``"qdldl"`` (the default when the ``qdldl`` package is installed): QDLDL with AMD
-  ordering; ``update`` refactors numerically on the stored symbolic analysis, the
-  inertia is read from ``D``.
-* ``"superlu"`` (scipy, always available; the fallback): SuperLU with a symmetric
-  minimum-degree ordering and diagonal pivots (``diag_pivot_thresh = 0``), an
-  ``LDL^T`` in disguise whose ``U`` diagonal is ``D``; if it had to pivot off the
-  diagonal the inertia is unknown (-1).  No symbolic reuse.
+* ``"block"`` (the default): :mod:`.ldl`, compiled, on the 3x3 node blocks of
+  ``K_ff`` in a minimum-degree node ordering (SuperLU's MMD on the node graph, once);
+  the inertia comes out of the factorisation.  On the default 1-by-3 mesh it factors
+  in about 0.4x and solves in about 0.4x the time of QDLDL's scalar LDL^T.
+* ``"superlu"`` (scipy): SuperLU with a symmetric minimum-degree ordering and
+  diagonal pivots (``diag_pivot_thresh = 0``), an ``LDL^T`` in disguise whose ``U``
+  diagonal is ``D``; if it had to pivot off the diagonal the inertia is unknown (-1).
+  No symbolic reuse.  Also the fallback of ``"block"`` when an exactly zero pivot
+  stops it, or when the free dofs are not whole nodes.
 """
 
 from __future__ import annotations
-
-import functools
-import importlib.util
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from . import ldl
 from .assembly import SparsePattern
 
-BACKENDS = ("auto", "qdldl", "superlu")
-
-
-def resolve_backend(backend: str) -> str:
-    """``"qdldl"`` or ``"superlu"`` for a requested back end (``"auto"``: qdldl if installed)."""
-    if backend not in BACKENDS:
-        raise ValueError(f"linear solver must be one of {BACKENDS}, got {backend!r}")
-    if backend == "auto":
-        return "qdldl" if importlib.util.find_spec("qdldl") is not None else "superlu"
-    if backend == "qdldl" and importlib.util.find_spec("qdldl") is None:
-        raise ValueError("linear solver 'qdldl' needs the qdldl package: pip install qdldl")
-    return backend
-
-
-class _Slot:
-    """One qdldl solver object; ``generation`` counts the factorisations it has held."""
-
-    def __init__(self, solver: object):
-        self.solver = solver
-        self.generation = 0
+BACKENDS = ("block", "superlu")
 
 
 class LDLFactor:
-    """The numeric factor of one ``K_ff``: ``solve`` and the inertia.
+    """The numeric factor of one ``K_ff``: ``solve`` and the inertia."""
 
-    A qdldl factor lives in a slot that a later factorisation may overwrite; using it
-    after that raises instead of silently solving with another matrix.
-    """
-
-    def __init__(self, slot: _Slot | None = None, lu: object = None):
-        self._slot, self._lu = slot, lu
-        self._generation = slot.generation if slot is not None else 0
-
-    def _solver(self) -> object:
-        if self._slot.generation != self._generation:
-            raise RuntimeError("this factorisation was overwritten by a newer one on the same slot")
-        return self._slot.solver
+    def __init__(self, solve, negative: int):
+        self._solve = solve
+        self._negative = negative
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``K_ff^-1 b``."""
-        if self._slot is None:
-            return self._lu.solve(b)
-        return self._solver().solve(b)
+        return self._solve(b)
 
     def negative_pivots(self) -> int:
-        """Number of negative entries of ``D`` (negative eigenvalues of ``K_ff``), -1 if unknown."""
-        if self._slot is None:
-            lu = self._lu
-            if not np.array_equal(lu.perm_r, lu.perm_c):
-                return -1
-            return int(np.count_nonzero(lu.U.diagonal() < 0))
-        d = self._solver().factors()[1]
-        if not np.all(np.isfinite(d)) or np.any(d == 0.0):  # a zero pivot stopped QDLDL
-            return -1
-        return int(np.count_nonzero(d < 0))
+        """Number of negative eigenvalues of ``K_ff``, -1 if unknown."""
+        return self._negative() if callable(self._negative) else self._negative
 
 
 class Factoriser:
@@ -99,60 +61,76 @@ class Factoriser:
     free : ndarray
         Sorted free dof numbers.
     backend : str
-        ``"auto"``, ``"qdldl"`` or ``"superlu"`` (see the module docstring).
+        ``"block"`` or ``"superlu"`` (see the module docstring).
     """
 
-    def __init__(self, pattern: SparsePattern, free: np.ndarray, backend: str = "auto"):
-        self.backend = resolve_backend(backend)
+    def __init__(self, pattern: SparsePattern, free: np.ndarray, backend: str = "block"):
+        if backend not in BACKENDS:
+            raise ValueError(f"linear solver must be one of {BACKENDS}, got {backend!r}")
         self.pattern, self.free = pattern, free
-        n = free.size
-        index = np.full(pattern.n_dofs, -1)
-        index[free] = np.arange(n)
-        rows, cols = index[pattern.rows], index[pattern.cols]
-        # Upper triangle of K_ff in CSC: column j holds rows i <= j.  The pattern is
-        # sorted by (row, col), i.e. the lower triangle's CSC order = upper's CSC order
-        # after swapping, so sort the selection by (col, row).
-        sel = np.flatnonzero((rows >= 0) & (cols >= 0) & (rows <= cols))
-        order = np.lexsort((rows[sel], cols[sel]))
-        self._upper = sel[order]
-        self._indices = rows[self._upper].astype(np.int64)
-        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(cols[self._upper], minlength=n))]).astype(np.int64)
-        self._n = n
-        self._slots: list[_Slot] = []
+        nodes = free[::3] // 3
+        whole_nodes = free.size % 3 == 0 and np.array_equal(free, (3 * nodes[:, None] + np.arange(3)).ravel())
+        self.backend = backend if whole_nodes else "superlu"
+        if self.backend == "block":
+            self._symbolic(nodes)
 
-    def upper(self, values: np.ndarray) -> sp.csc_matrix:
-        """The upper triangle of ``K_ff`` (CSC) from the pattern's nonzeros ``values``."""
-        return sp.csc_matrix((values[self._upper], self._indices, self._indptr), shape=(self._n, self._n))
+    def _symbolic(self, nodes: np.ndarray) -> None:
+        """Node ordering, block pattern of the upper triangle, elimination tree, value map."""
+        pattern, n = self.pattern, nodes.size
+        index = np.full(pattern.n_dofs // 3, -1)
+        index[nodes] = np.arange(n)
+        rows, cols = index[pattern.rows // 3], index[pattern.cols // 3]
+        inside = (rows >= 0) & (cols >= 0)
+        graph = sp.csc_matrix((np.ones(np.count_nonzero(inside)), (rows[inside], cols[inside])), shape=(n, n))
+        graph.sum_duplicates()
+        graph.data[:] = 1.0
+        # Minimum-degree ordering of the node graph (diagonally dominant, so SuperLU keeps
+        # its symmetric ordering): block row i of the factor is node order[i].
+        lu = spla.splu((graph + 10.0 * sp.eye(n)).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        order = np.argsort(lu.perm_c)
+        upper = sp.triu(graph[order][:, order], format="csc")
+        upper.sort_indices()
+        ap, ai = upper.indptr.astype(np.int64), upper.indices.astype(np.int64)
+        parent, counts = ldl.elimination_tree(n, ap, ai)
+        # Position in the pattern's nonzeros of entry (a, c) of block (ai[p], column of p).
+        col = np.repeat(np.arange(n), np.diff(ap))
+        r = 3 * nodes[order[ai]][:, None, None] + np.arange(3)[None, :, None]
+        c = 3 * nodes[order[col]][:, None, None] + np.arange(3)[None, None, :]
+        keys = pattern.rows * pattern.n_dofs + pattern.cols
+        wanted = (r * pattern.n_dofs + c).ravel()
+        position = np.searchsorted(keys, wanted)
+        if np.any(position >= keys.size) or np.any(keys[np.minimum(position, keys.size - 1)] != wanted):
+            self.backend = "superlu"  # a node pair coupled in some components only: not 3x3 blocks
+            return
+        self._n, self._order, self._ap, self._ai, self._parent = n, order.astype(np.int64), ap, ai, parent
+        self._lp = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._position = position.reshape(-1, 3, 3)
 
-    def factor(self, values: np.ndarray, keep: LDLFactor | None = None) -> LDLFactor:
-        """Factor ``K_ff`` of the pattern's nonzeros ``values``.
+    def factor(self, values: np.ndarray) -> LDLFactor:
+        """Factor ``K_ff`` of the pattern's nonzeros ``values``."""
+        if self.backend == "block":
+            n, lp = self._n, self._lp
+            li, lx, dinv = np.empty(lp[-1], np.int64), np.empty((lp[-1], 3, 3)), np.empty((n, 3, 3))
+            negative = ldl.factor(n, self._ap, self._ai, values[self._position], lp, self._parent, li, lx, dinv)
+            if negative >= 0:
+                order = self._order
 
-        A qdldl factor is refactored numerically in a slot other than the one holding
-        ``keep`` (the factor still in use, e.g. at the last converged state).
-        """
-        if self.backend == "superlu":
-            return self._superlu(values)
-        upper = self.upper(values)
-        slot = next((s for s in self._slots if keep is None or keep._slot is not s), None)
-        if slot is None:
-            try:
-                slot = _Slot(_qdldl().Solver(upper, upper=True))
-            except RuntimeError:  # QDLDL met an exactly zero pivot: SuperLU may still factor it
-                return self._superlu(values)
-            self._slots.append(slot)
-        else:
-            slot.solver.update(upper, upper=True)
-            slot.generation += 1
-        return LDLFactor(slot)
+                def solve(b: np.ndarray) -> np.ndarray:
+                    x = np.empty(b.size)
+                    ldl.solve(n, lp, li, lx, dinv, order, np.ascontiguousarray(b, dtype=float), x)
+                    return x
+
+                return LDLFactor(solve, negative)
+        return self._superlu(values)  # also when a zero pivot stopped the block factorisation
 
     def _superlu(self, values: np.ndarray) -> LDLFactor:
         k_ff = self.pattern.block(values, self.free, self.free).tocsc()  # symmetric: CSR data is CSC
-        return LDLFactor(lu=spla.splu(k_ff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                                      options={"SymmetricMode": True}))
+        lu = spla.splu(k_ff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
 
+        def negative() -> int:
+            if not np.array_equal(lu.perm_r, lu.perm_c):
+                return -1
+            return int(np.count_nonzero(lu.U.diagonal() < 0))
 
-@functools.cache
-def _qdldl():
-    import qdldl
-
-    return qdldl
+        return LDLFactor(lu.solve, negative)

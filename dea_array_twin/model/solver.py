@@ -80,6 +80,9 @@ class NewtonSettings:
         D is checked for stability (and so retried as above) even when
         ``check_stability`` is off: a jump is where a spurious branch is likely,
         and one factorisation is cheap next to its load steps.
+    linear_solver : str
+        Factorisation of ``K_ff`` (:mod:`.linsolve`): ``"block"`` (compiled LDL^T on
+        3x3 node blocks with symbolic reuse, the default) or ``"superlu"`` (scipy).
     """
 
     residual_tol: float = 1e-8
@@ -91,7 +94,7 @@ class NewtonSettings:
     check_stability: bool = True
     unstable_step: float = 1.0 / 32.0
     long_jump: float = 0.1
-    linear_solver: str = "auto"
+    linear_solver: str = "block"
 
     def __post_init__(self) -> None:
         if self.linear_solver not in BACKENDS:
@@ -161,7 +164,7 @@ class SolveStats:
 
 
 def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray,
-              backend: str = "auto") -> Factorisation:
+              backend: str = "block") -> Factorisation:
     """Assemble ``K`` from element matrices ``ke`` and factor its free-free block (no reuse)."""
     values = model.pattern.values(ke)
     factor = Factoriser(model.pattern, free, backend).factor(values)
@@ -194,17 +197,13 @@ class EquilibriumSolver:
         return tangent_values(m.disc, m.pattern, x, m.yeoh, maxwell, m.thickness)[1]
 
     def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
-        """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``.
-
-        The factorisation at the last converged state (``self.factorisation``) stays valid.
-        """
+        """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``."""
         key = free.tobytes()
         if key not in self._factorisers:
             if len(self._factorisers) >= 8:  # unit modes rarely change; keep the newest few
                 self._factorisers.pop(next(iter(self._factorisers)))
             self._factorisers[key] = Factoriser(self.model.pattern, free, self.settings.linear_solver)
-        keep = self.factorisation.factor if self.factorisation is not None else None
-        factor = self._factorisers[key].factor(values, keep)
+        factor = self._factorisers[key].factor(values)
         return Factorisation(factor, self.model.pattern.block(values, free, prescribed), free, prescribed)
 
     # ------------------------------------------------------------------ one step

@@ -1,6 +1,4 @@
-"""The LDL^T factorisations of K_ff (model/linsolve.py): qdldl against the SuperLU answer."""
-
-import importlib.util
+"""The LDL^T factorisations of K_ff (model/linsolve.py, model/ldl.py): 3x3-block LDL^T against SuperLU."""
 
 import numpy as np
 import pytest
@@ -9,7 +7,7 @@ from conftest import COARSE, FREE_CENTRE
 
 from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
 from dea_array_twin.model import kernels
-from dea_array_twin.model.linsolve import Factoriser, resolve_backend
+from dea_array_twin.model.linsolve import Factoriser
 from dea_array_twin.model.membrane import MembraneModel
 from dea_array_twin.model.solver import SolveStats
 
@@ -40,13 +38,16 @@ def _states():
     yield "15 mm at 2730 V", deflected.model, free_d, _tangent(deflected.model, deflected._x, np.array([0, 2730.0, 0]))
 
 
-def test_qdldl_inertia_and_solves_equal_superlu_on_stable_and_unstable_states():
-    """The negative pivot count of qdldl's D equals the count from SuperLU's U diagonal (the
-    answer before qdldl) on two stable and two unstable tangents; both solve K_ff x = b to
-    1e-10 of |x| against each other.  The saddle's count is checked against eigsh too."""
+def test_block_ldl_inertia_and_solves_equal_superlu_on_stable_and_unstable_states():
+    """The negative pivot count of the block LDL^T equals the count from SuperLU's U
+    diagonal (the answer before it) on two stable and two unstable tangents; both solve
+    K_ff x = b to 1e-10 of |x| against each other.  The saddle's count is checked against
+    eigsh too."""
     counts = {}
     for name, model, free, values in _states():
-        ours = Factoriser(model.pattern, free, "qdldl").factor(values)
+        ours = Factoriser(model.pattern, free, "block")
+        assert ours.backend == "block"
+        ours = ours.factor(values)
         old = Factoriser(model.pattern, free, "superlu").factor(values)
         counts[name] = ours.negative_pivots()
         assert counts[name] == old.negative_pivots(), name
@@ -61,41 +62,29 @@ def test_qdldl_inertia_and_solves_equal_superlu_on_stable_and_unstable_states():
     assert counts["saddle"] >= 1 and counts["circle lp 0.95"] > counts["saddle"]
 
 
-def test_superlu_fallback_gives_the_same_curve_and_stability_flags():
-    """Without qdldl the solver factors with SuperLU: same forces (solver tolerance) and flags."""
+def test_superlu_gives_the_same_curve_and_stability_flags():
+    """The SuperLU back end (NewtonSettings.linear_solver) and the default give the same
+    forces (solver tolerance) and flags."""
     results = {}
-    for backend in ("qdldl", "superlu"):
+    for backend in ("block", "superlu"):
         twin = ArrayTwin(ArrayConfig(**COARSE), NewtonSettings(linear_solver=backend))
         results[backend] = [twin.solve([0, d, 0], [0, 2730.0, 0], FREE_CENTRE) for d in (0.004, 0.008, 0.012)]
-    for a, b in zip(results["qdldl"], results["superlu"]):
+    for a, b in zip(results["block"], results["superlu"]):
         assert a.force[1] == pytest.approx(b.force[1], rel=1e-7)
         assert a.stable is True and b.stable is True
-
-
-def test_auto_backend_falls_back_to_superlu_when_qdldl_is_missing(monkeypatch):
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "qdldl" else real(name, *a))
-    assert resolve_backend("auto") == "superlu"
-    with pytest.raises(ValueError, match="pip install qdldl"):
-        resolve_backend("qdldl")
     with pytest.raises(ValueError, match="linear_solver must be one of"):
         NewtonSettings(linear_solver="cholmod")
 
 
-def test_a_factorisation_overwritten_by_a_newer_one_refuses_to_solve():
-    """qdldl refactors in place: the solver keeps the converged state's factor (``keep``) and
-    refactors in another slot; a factor whose slot was reused raises instead of answering
-    with another matrix."""
+def test_free_dofs_that_are_not_whole_nodes_are_factored_by_superlu():
+    """The block LDL^T needs all three dofs of each free node; otherwise SuperLU answers."""
     model = MembraneModel(ArrayConfig(layout="circular"))
     _, free = model.prescribed_dofs(("driven",))
-    factoriser = Factoriser(model.pattern, free, "qdldl")
-    stiff = _tangent(model, model.flat_state() * 1.2 / 1.1, np.zeros(1))
-    first = factoriser.factor(_tangent(model, model.flat_state(), np.zeros(1)))
-    b = np.ones(free.size)
-    x_first = first.solve(b)
-    second = factoriser.factor(stiff, keep=first)
-    assert np.array_equal(first.solve(b), x_first)  # kept
-    assert not np.allclose(second.solve(b), x_first)
-    factoriser.factor(stiff, keep=second)  # reuses the first slot
-    with pytest.raises(RuntimeError, match="overwritten"):
-        first.solve(b)
+    partial = free[free % 3 != 2]  # in-plane dofs only
+    factoriser = Factoriser(model.pattern, partial, "block")
+    assert factoriser.backend == "superlu"
+    values = _tangent(model, model.flat_state(), np.zeros(1))
+    b = np.ones(partial.size)
+    x = factoriser.factor(values).solve(b)
+    k = model.pattern.block(values, partial, partial)
+    assert np.abs(k @ x - b).max() <= 1e-10
