@@ -64,11 +64,15 @@ setup(
     ],
     # Non-ROS dependencies only. rclpy and the message packages come from the ROS
     # install (colcon) or from requirements-ros.txt (venv, tools/setup.sh); PyPI
-    # ROS wheels must never be pulled in over a full ROS install.
-    install_requires=['numpy', 'scipy', 'numba', 'gmsh', 'pyyaml', 'tqdm'],
+    # ROS wheels must never be pulled in over a full ROS install. Every import that
+    # is not inside a function is here (and in package.xml); mcap >= 1.5 for
+    # Writer.flush, which closes a chunk on demand (the recorder's durability).
+    # test/test_dependencies.py imports every module with only these installed.
+    install_requires=['numpy', 'scipy', 'numba', 'gmsh', 'pyyaml', 'tqdm', 'mcap>=1.5',
+                      'mcap-ros2-support'],
+    # Optional, imported where used, with a message naming the extra when missing.
     extras_require={
-        'test': ['pytest', 'pytest-timeout', 'import-linter>=2.1', 'ruff'],
-        'mcap': ['mcap>=1.5', 'mcap-ros2-support', 'rosbags'],
+        'test': ['pytest', 'pytest-timeout', 'import-linter>=2.1', 'ruff', 'rosbags'],
         'plot': ['matplotlib'],
         'cluster': ['dask[distributed]>=2024.1'],
     },

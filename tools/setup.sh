@@ -33,10 +33,10 @@ pip_q --upgrade pip
 say "installing ROS 2 Jazzy wheels (requirements-ros.txt)"
 pip_q -r requirements-ros.txt
 
-say "installing dea_array_twin with extras [test,mcap,plot,cluster]"
+say "installing dea_array_twin with extras [test,plot,cluster]"
 # setuptools never prunes build/lib: a module deleted from the source tree would
 # otherwise still be copied into the wheel.
 rm -rf build/lib build/bdist.*
-pip_q ".[test,mcap,plot,cluster]"
+pip_q ".[test,plot,cluster]"
 
 say "done: $(.venv/bin/python -c 'import sys; print(sys.prefix)')"

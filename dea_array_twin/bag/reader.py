@@ -5,7 +5,7 @@ recording split by the twin's recorder into ``X.mcap``, ``X_1.mcap``, ...).
 :class:`Bag` checks every file on opening (MCAP magic at both ends, readable summary),
 lists its topics, message counts and metadata records, and yields the messages of
 chosen topics over all files in log-time order, optionally decoded with ``mcap_ros2``.
-The ``mcap`` extra is imported on first use; no rclpy.
+Needs ``mcap`` and ``mcap_ros2`` (core dependencies), no rclpy.
 
 A file without a summary (the recorder was killed) is refused with a pointer to
 ``python -m dea_array_twin.bag.recover``, not recovered silently: the recovered copy
@@ -23,6 +23,9 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import yaml
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
 __all__ = ["Bag", "BagError", "BagMessage", "bag_files"]
 
@@ -58,19 +61,8 @@ def _normalise_type(name: str) -> str:
     return f"{parts[0]}/msg/{parts[1]}" if len(parts) == 2 else name
 
 
-def _mcap_modules():
-    try:
-        from mcap.exceptions import McapError
-        from mcap.reader import make_reader
-        from mcap_ros2.decoder import DecoderFactory
-    except ImportError as exc:  # pragma: no cover - depends on the install
-        raise BagError(f"reading bags needs the 'mcap' extra (pip install 'dea_array_twin[mcap]'): {exc}") from None
-    return McapError, make_reader, DecoderFactory
-
-
-def _damage_errors() -> tuple[type[BaseException], ...]:
-    McapError, _, _ = _mcap_modules()
-    return (McapError, struct.error, ValueError, EOFError, UnicodeDecodeError, KeyError, IndexError)
+#: What reading a damaged or cut-off file raises inside ``mcap`` / ``mcap_ros2``.
+_DAMAGE = (McapError, struct.error, ValueError, EOFError, UnicodeDecodeError, KeyError, IndexError)
 
 
 def bag_files(path: str | Path) -> list[Path]:
@@ -144,8 +136,6 @@ def _recover_hint(path: Path) -> str:
 
 def _inspect(path: Path) -> _FileInfo:
     """Check one file is a complete MCAP file and read its channels, counts and metadata."""
-    McapError, make_reader, _ = _mcap_modules()
-    damage = _damage_errors()
     try:
         size = path.stat().st_size
         with open(path, "rb") as f:
@@ -184,7 +174,7 @@ def _inspect(path: Path) -> _FileInfo:
                     start_ns = message.log_time if start_ns is None else min(start_ns, message.log_time)
             for record in reader.iter_metadata():
                 metadata.setdefault(record.name, dict(record.metadata))
-    except damage as exc:
+    except _DAMAGE as exc:
         raise BagError(f"{path} is damaged ({type(exc).__name__}: {exc}). " + _recover_hint(path)) from None
     return _FileInfo(path, topics, dict(counts), start_ns, metadata)
 
@@ -273,8 +263,6 @@ class Bag:
         return heapq.merge(*streams, key=lambda m: m.log_time_ns) if len(streams) > 1 else streams[0]
 
     def _file_messages(self, path: Path, topics: list[str], decode: bool) -> Iterator[BagMessage]:
-        _, make_reader, DecoderFactory = _mcap_modules()
-        damage = _damage_errors()
         factory = DecoderFactory()  # decoders are cached by schema id: one factory per file
         try:
             with open(path, "rb") as f:
@@ -293,5 +281,5 @@ class Bag:
             raise
         except OSError as exc:
             raise BagError(f"cannot read {path}: {exc.strerror or exc}") from None
-        except damage as exc:
+        except _DAMAGE as exc:
             raise BagError(f"{path} is damaged ({type(exc).__name__}: {exc})") from None

@@ -53,13 +53,14 @@ def recover(src: str | os.PathLike, dst: str | os.PathLike) -> int:
     Raises
     ------
     RecoveryError
-        ``src`` is not an MCAP file: wrong magic bytes, too short, or no Header record first.
+        ``src`` is not an MCAP file (wrong magic bytes, too short, or no Header record
+        first), or ``dst`` is ``src``.
     OSError
         ``src`` cannot be read or ``dst`` cannot be written.
     """
     src, dst = Path(src), Path(dst)
     if src.resolve() == dst.resolve():
-        raise ValueError(f"recover() needs a destination other than the source {src}")
+        raise RecoveryError(f"the destination must differ from the source {src}: the copy is written beside it")
     with open(src, "rb") as f_in:
         records = _records(f_in, src)
         header = next(records)  # checks the magic and the Header: nothing written before that
@@ -147,7 +148,11 @@ def _copy(header: Header, records, f_out) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m dea_array_twin.bag.recover SRC DST``: recover, print the message count."""
+    """``python -m dea_array_twin.bag.recover SRC DST``: recover, print the message count.
+
+    Exit codes: 0 recovered, 2 bad input (not an MCAP file, ``DST`` = ``SRC``, unreadable
+    or unwritable file), as every ``dea-twin`` sub-command.
+    """
     args = sys.argv[1:] if argv is None else argv
     if len(args) != 2:
         print("usage: python -m dea_array_twin.bag.recover SRC.mcap DST.mcap", file=sys.stderr)
@@ -155,8 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         count = recover(args[0], args[1])
     except (RecoveryError, OSError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        print(f"dea-twin bag-recover: error: {exc}", file=sys.stderr)
+        return 2
     print(f"recovered {count} messages into {args[1]}")
     return 0
 

@@ -28,17 +28,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import BinaryIO
 
-try:
-    import mcap
-    from mcap.writer import CompressionType, Writer
-    from mcap.writer import lz4 as _mcap_lz4
-    from mcap.writer import zstandard as _mcap_zstd
-except ImportError as _exc:  # pragma: no cover - depends on the install
-    raise ImportError("dea_array_twin.bag.writer needs the 'mcap' package "
-                      "(pip install 'dea_array_twin[mcap]')") from _exc
-if not hasattr(Writer, "flush"):  # pragma: no cover - depends on the install
-    raise ImportError("dea_array_twin.bag.writer needs mcap >= 1.5 (Writer.flush closes a chunk on demand); "
-                      f"found mcap {getattr(mcap, '__version__', '?')}")
+import mcap
+from mcap.writer import CompressionType, Writer
+from mcap.writer import lz4 as _mcap_lz4
+from mcap.writer import zstandard as _mcap_zstd
 
 from .errors import RecordingError
 from .msg_definitions import message_definition, split_type_name, type_hash
@@ -142,7 +135,9 @@ class Ros2McapWriter:
     ----------
     path
         The ``.mcap`` file to write; missing parent directories are created.  After a split
-        the next files are ``<stem>_1.mcap``, ``<stem>_2.mcap``, ... beside it.
+        the next files are ``<stem>_1.mcap``, ``<stem>_2.mcap``, ... beside it.  Every file
+        is created new: an existing one is an error (errno ``EEXIST``), never overwritten,
+        unless ``overwrite``.
     metadata
         Metadata records ``{name: {key: value}}`` (all ``str``) written to every file,
         e.g. ``{"dea_array_twin_config": {"prestretch": "1.2", ...}}``.
@@ -158,11 +153,14 @@ class Ros2McapWriter:
     split_duration
         Start a new file before a message whose log time is this many seconds or more
         after the first message of the current file.
+    overwrite
+        Replace existing files (an output the user named, e.g. a replay's ``--out``)
+        instead of refusing them.
 
     Raises
     ------
     RecordingError
-        The file cannot be created or written.
+        The file exists (and not ``overwrite``), or cannot be created or written.
 
     Examples
     --------
@@ -173,7 +171,7 @@ class Ros2McapWriter:
 
     def __init__(self, path: str | os.PathLike, *, metadata: Mapping[str, Mapping[str, str]] | None = None,
                  flush_period: float | None = 1.0, split_size: int | None = None,
-                 split_duration: float | None = None):
+                 split_duration: float | None = None, overwrite: bool = False):
         if flush_period is not None and flush_period < 0:
             raise ValueError(f"flush_period must be >= 0 s or None, got {flush_period}")
         if split_size is not None and split_size <= 0:
@@ -182,6 +180,7 @@ class Ros2McapWriter:
             raise ValueError(f"split_duration must be > 0 s or None, got {split_duration}")
         self._metadata = {str(name): _str_dict(name, values) for name, values in (metadata or {}).items()}
         self._first_path = Path(path)
+        self._mode = "wb" if overwrite else "xb"
         self.flush_period = flush_period
         self.split_size = split_size
         self.split_duration_ns = None if split_duration is None else int(split_duration * 1e9)
@@ -331,7 +330,7 @@ class Ros2McapWriter:
         self._paths.append(path)
         with self._guard("create"):
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._stream = open(path, "wb")  # noqa: SIM115 - closed in _finish_file / on error
+            self._stream = open(path, self._mode)  # noqa: SIM115 - closed in _finish_file / on error
         self._writer = Writer(self._stream, compression=self._compression)
         self._schema_ids: dict[str, int] = {}
         self._channel_ids: dict[int, int] = {}

@@ -31,11 +31,22 @@ def _neighbours(text: str) -> str | float:
         raise argparse.ArgumentTypeError(f"expected 'free' or a displacement in m, got {text!r}") from None
 
 
+def _version() -> str:
+    """The installed distribution's version (``setup.py``), or a note that it is not installed."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("dea_array_twin")
+    except PackageNotFoundError:
+        return "(not installed: run from a source tree)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``dea-twin`` argument parser."""
     parser = argparse.ArgumentParser(prog="dea-twin", description=(
         "Finite-element digital twin of a soft array of dielectric-elastomer transducers. "
         "SI units: displacements in m, voltages in V."))
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     curve = sub.add_parser("curve", help="force/capacitance of every unit while one unit is swept")
     curve.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")

@@ -261,7 +261,7 @@ def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]]) 
 
     n = run.force.shape[1]
     names = [f"unit_{k + 1}" for k in range(n)]
-    with Ros2McapWriter(path, metadata=metadata, flush_period=None) as rec:
+    with Ros2McapWriter(path, metadata=metadata, flush_period=None, overwrite=True) as rec:
         ids = {kind: rec.add_topic(f"/command/{kind}", FLOAT_ARRAY) for kind in COMMANDS}
         ids.update({kind: rec.add_topic(f"/{kind}", FLOAT_ARRAY) for kind in OUTPUTS})
         ids["unit_states"] = rec.add_topic("/unit_states", JOINT_STATE)

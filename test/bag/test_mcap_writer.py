@@ -4,6 +4,7 @@ Messages are real ROS 2 messages serialised by rclpy; every sequence is filled b
 ``serialize_message`` may append junk bytes for empty sequences (DESIGN.md section 4).
 """
 
+import errno
 import json
 import os
 import signal
@@ -13,24 +14,19 @@ import sys
 from pathlib import Path
 
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from mcap.reader import make_reader
+from mcap_ros2.reader import read_ros2_messages
+from rclpy.serialization import serialize_message
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import Reader as Rosbag2Reader
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-pytest.importorskip("mcap")
-pytest.importorskip("mcap_ros2")
-rosbags = pytest.importorskip("rosbags")
-
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue  # noqa: E402
-from mcap.reader import make_reader  # noqa: E402
-from mcap_ros2.reader import read_ros2_messages  # noqa: E402
-from rclpy.serialization import serialize_message  # noqa: E402
-from rosbags.highlevel import AnyReader  # noqa: E402
-from rosbags.rosbag2 import Reader as Rosbag2Reader  # noqa: E402
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension  # noqa: E402
-
-from dea_array_twin.bag import msg_definitions, writer  # noqa: E402
-from dea_array_twin.bag.recover import RecoveryError, recover  # noqa: E402
-from dea_array_twin.bag.writer import RecordingError, Ros2McapWriter, default_qos_yaml  # noqa: E402
+from dea_array_twin.bag import msg_definitions, writer
+from dea_array_twin.bag.recover import RecoveryError, recover
+from dea_array_twin.bag.writer import RecordingError, Ros2McapWriter, default_qos_yaml
 
 REPO = Path(__file__).resolve().parents[2]
 MAGIC = b"\x89MCAP0\r\n"
@@ -295,8 +291,20 @@ def test_unwritable_directory_raises_recording_error_naming_the_path(tmp_path):
 
 def test_full_disk_at_start_raises_recording_error():
     with pytest.raises(RecordingError, match="No space left on device") as info:
-        Ros2McapWriter("/dev/full")
+        Ros2McapWriter("/dev/full", overwrite=True)
     assert info.value.filename == "/dev/full"
+
+
+def test_an_existing_file_is_never_opened_for_writing(tmp_path):
+    """Two recorders that pick the same name: the second is refused and the first file is intact."""
+    path = tmp_path / "run.mcap"
+    with Ros2McapWriter(path) as first:
+        cid = first.add_topic("/force", "std_msgs/msg/Float64MultiArray")
+        first.write(cid, serialize_message(Float64MultiArray(data=[1.0])), 1)
+        with pytest.raises(RecordingError, match="exists") as info:
+            Ros2McapWriter(path)
+        assert info.value.errno == errno.EEXIST
+    assert [list(m.ros_msg.data) for m in read_ros2_messages(str(path))] == [[1.0]]
 
 
 class _FillingDisk:

@@ -300,8 +300,6 @@ def test_csv_round_trip_through_the_cli_writes_table_yaml_and_png(tmp_path, caps
 
 def test_an_mcap_recording_gives_the_same_curve_as_the_equivalent_csv(tmp_path, coarse_yaml):
     """Commands every 0.5 s, the node's answer 0.05 s later, a stale output 0.01 s after each command."""
-    pytest.importorskip("mcap")
-    pytest.importorskip("rclpy")
     from rclpy.serialization import serialize_message
     from std_msgs.msg import Float64MultiArray
 

@@ -211,7 +211,6 @@ def test_slip_table_loads_from_yaml_lists(tmp_path):
 
 
 def test_slip_table_round_trips_through_recording_metadata():
-    pytest.importorskip("mcap")
     from dea_array_twin.bag.twin_config import config_from_metadata, metadata_from_config
 
     for cfg in (BASE, BASE.replace(slip_displacement=(0.0, 1e-5, 0.015), slip_factor=(1.0, 0.1 + 0.2, 0.9))):
@@ -239,7 +238,6 @@ def _node_config(args: list[str]) -> tuple[ArrayConfig, object]:
 
 
 def test_node_declares_the_slip_table_as_double_arrays():
-    pytest.importorskip("rclpy")
     from rcl_interfaces.msg import ParameterType
 
     coarse = [f"{k}:={v!r}" for k, v in COARSE.items()]
@@ -252,7 +250,6 @@ def test_node_declares_the_slip_table_as_double_arrays():
 
 
 def test_node_with_a_slip_table_reports_the_cores_answer():
-    pytest.importorskip("rclpy")
     from dea_array_twin.ros.testing import TwinHarness
 
     table = dict(slip_displacement=[0.0, 0.015], slip_factor=[1.0, 0.9])

@@ -126,3 +126,21 @@ def test_demo_runs_the_twin_with_the_wave_controller():
     first_up = [int(np.argmax(d[:, k] > 5.0)) for k in (0, 1)]
     assert first_up[0] < first_up[1]  # unit 1 first, then unit 2
     assert d.max() < 8.0 + 1e-6  # never beyond the wave's 8 mm amplitude
+
+
+def test_version_is_the_installed_distributions(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"dea-twin {version('dea_array_twin')}"
+
+
+def test_bag_recover_onto_its_own_source_exits_2_and_leaves_it_alone(tmp_path, capsys):
+    bag = tmp_path / "run.mcap"
+    bag.write_bytes(b"\x89MCAP0\r\n not really")
+    assert main(["bag-recover", str(bag), str(tmp_path / "." / "run.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert "must differ from the source" in err and "Traceback" not in err
+    assert bag.read_bytes() == b"\x89MCAP0\r\n not really"

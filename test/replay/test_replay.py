@@ -16,27 +16,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rclpy
+from mcap_ros2.reader import read_ros2_messages
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String
 
-pytest.importorskip("mcap")
-pytest.importorskip("mcap_ros2")
-
-import rclpy  # noqa: E402
-from mcap_ros2.reader import read_ros2_messages  # noqa: E402
-from rclpy.context import Context  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
-from rclpy.node import Node  # noqa: E402
-from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from rclpy.serialization import serialize_message  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension, String  # noqa: E402
-
-from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings  # noqa: E402
-from dea_array_twin.bag.reader import Bag  # noqa: E402
-from dea_array_twin.bag.series import load_series  # noqa: E402
-from dea_array_twin.bag.twin_config import metadata_from_config  # noqa: E402
-from dea_array_twin.bag.writer import Ros2McapWriter  # noqa: E402
-from dea_array_twin.cli.main import main  # noqa: E402
-from dea_array_twin.model.metrics import fit  # noqa: E402
+from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
+from dea_array_twin.bag.reader import Bag
+from dea_array_twin.bag.series import load_series
+from dea_array_twin.bag.twin_config import metadata_from_config
+from dea_array_twin.bag.writer import Ros2McapWriter
+from dea_array_twin.cli.main import main
+from dea_array_twin.model.metrics import fit
 
 REPO = Path(__file__).resolve().parents[2]
 FLOATS, STATES, STRING = "std_msgs/msg/Float64MultiArray", "sensor_msgs/msg/JointState", "std_msgs/msg/String"
