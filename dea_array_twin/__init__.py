@@ -20,7 +20,17 @@ The subpackages, lowest layer first (each may import only those below it; checke
 """
 
 from .configfile import load_config
-from .model import DRIVEN, FREE, ArrayConfig, ArrayTwin, ConfigError, ConvergenceError, NewtonSettings, TwinResult
+from .model import (
+    DRIVEN,
+    FREE,
+    ArrayConfig,
+    ArrayTwin,
+    ConfigError,
+    ConvergenceError,
+    NewtonSettings,
+    SolveCancelled,
+    TwinResult,
+)
 
 __all__ = ["ArrayConfig", "ArrayTwin", "ConfigError", "ConvergenceError", "DRIVEN", "FREE", "NewtonSettings",
-           "TwinResult", "load_config"]
+           "SolveCancelled", "TwinResult", "load_config"]

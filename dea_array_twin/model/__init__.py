@@ -13,8 +13,8 @@ above is a thin adapter.
 
 from .config import ArrayConfig, ConfigError
 from .membrane import DRIVEN, FREE, MembraneModel, check_modes
-from .solver import ConvergenceError, NewtonSettings
+from .solver import ConvergenceError, NewtonSettings, SolveCancelled
 from .twin import ArrayTwin, TwinResult, command_error
 
 __all__ = ["ArrayConfig", "ArrayTwin", "ConfigError", "ConvergenceError", "DRIVEN", "FREE", "MembraneModel",
-           "NewtonSettings", "TwinResult", "check_modes", "command_error"]
+           "NewtonSettings", "SolveCancelled", "TwinResult", "check_modes", "command_error"]

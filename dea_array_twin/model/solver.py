@@ -33,6 +33,7 @@ reduce it.  The solver
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -43,6 +44,10 @@ from .membrane import DRIVEN, MembraneModel
 
 class ConvergenceError(RuntimeError):
     """Newton did not reach equilibrium, even after cutting the load step."""
+
+
+class SolveCancelled(RuntimeError):
+    """The caller's ``cancel`` callback stopped the solve (it is asked before every Newton iteration)."""
 
 
 @dataclass(frozen=True)
@@ -208,10 +213,12 @@ class EquilibriumSolver:
 
     # ------------------------------------------------------------------ one step
     def _newton(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, maxwell: np.ndarray,
-                fact: Factorisation | None, stats: SolveStats) -> tuple | None:
+                fact: Factorisation | None, stats: SolveStats,
+                cancel: Callable[[], bool] | None = None) -> tuple | None:
         """Newton iterations at fixed prescribed values.
 
         Returns ``(x, r, point_state, factorisation)`` at convergence, None on failure.
+        Raises :class:`SolveCancelled` when ``cancel()`` is true before an iteration.
         """
         m, s = self.model, self.settings
         args = (m.yeoh, maxwell, m.thickness)
@@ -225,6 +232,8 @@ class EquilibriumSolver:
         norm = np.linalg.norm(r_f)
         last_dx = np.inf
         for _ in range(s.max_iterations):
+            if cancel is not None and cancel():  # the cancel point: between iterations
+                raise SolveCancelled(f"solve cancelled after {stats.iterations} Newton iterations")
             if not np.isfinite(norm):
                 return None
             peak = np.abs(r_f).max()
@@ -264,14 +273,15 @@ class EquilibriumSolver:
     # ------------------------------------------------------------------ load path
     def solve(self, x: np.ndarray, modes: tuple[str, ...], start_displacement: np.ndarray,
               displacement: np.ndarray, start_voltage: np.ndarray, voltage: np.ndarray,
-              check_stability: bool | None = None) -> tuple:
+              check_stability: bool | None = None, cancel: Callable[[], bool] | None = None) -> tuple:
         """Equilibrium at (``displacement``, ``voltage``) starting from state ``x``.
 
         ``x`` is a converged state at (``start_displacement``, ``start_voltage``)
         for driven units; it is not modified.  Returns the new positions, the
         internal forces there, the :class:`~.assembly.PointState` there and
         :class:`SolveStats`.  ``check_stability`` overrides the setting for this
-        solve.  Raises :class:`ConvergenceError`.
+        solve.  Raises :class:`ConvergenceError`, or :class:`SolveCancelled` as soon as
+        ``cancel()`` (asked before every Newton iteration) returns True.
         """
         m, s = self.model, self.settings
         check = s.check_stability if check_stability is None else check_stability
@@ -315,7 +325,7 @@ class EquilibriumSolver:
                     trial[free] += scale * dx_last
                     change = change - scale * dp_last
             trial[free] += fact.predict(change, groups)  # linear predictor from the last tangent
-            outcome = self._newton(trial, free, prescribed, m.maxwell(v0 + t * (v1 - v0)), fact, stats)
+            outcome = self._newton(trial, free, prescribed, m.maxwell(v0 + t * (v1 - v0)), fact, stats, cancel)
             if outcome is None:
                 cuts += 1
                 stats.step_cuts = cuts + retries

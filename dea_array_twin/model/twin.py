@@ -10,15 +10,15 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from .config import ArrayConfig
 from .membrane import DRIVEN, FREE, MembraneModel
-from .solver import ConvergenceError, EquilibriumSolver, NewtonSettings
+from .solver import ConvergenceError, EquilibriumSolver, NewtonSettings, SolveCancelled
 
-__all__ = ["ArrayTwin", "TwinResult", "ConvergenceError", "DRIVEN", "FREE", "command_error"]
+__all__ = ["ArrayTwin", "TwinResult", "ConvergenceError", "DRIVEN", "FREE", "SolveCancelled", "command_error"]
 
 
 @dataclass(frozen=True)
@@ -185,7 +185,8 @@ class ArrayTwin:
 
     def solve(self, displacement: Sequence[float] | float | None = None,
               voltage: Sequence[float] | float | None = None,
-              modes: Sequence[str] | None = None, check_stability: bool | None = None) -> TwinResult:
+              modes: Sequence[str] | None = None, check_stability: bool | None = None,
+              cancel: Callable[[], bool] | None = None) -> TwinResult:
         """Move the twin to a new command and return the equilibrium there.
 
         Parameters
@@ -203,11 +204,18 @@ class ArrayTwin:
             minimum (``result.stable``); default: the solver setting.  Costs one
             factorisation (about 20 ms on the default mesh); without it
             ``result.stable`` is None.
+        cancel : callable, optional
+            Asked with no arguments before every Newton iteration; when it returns
+            True the solve is abandoned (e.g. past a time budget, or for a newer
+            request).  Called from the thread that runs the solve.
 
         Raises
         ------
         ConvergenceError
             If no equilibrium is found; the twin keeps its previous state.
+        SolveCancelled
+            ``cancel()`` returned True; the twin keeps its previous state (positions,
+            command, modes; the next solve starts with a fresh tangent there).
         ValueError
             For a command of the wrong length or with NaN/inf.
         """
@@ -222,7 +230,13 @@ class ArrayTwin:
         centre = self._x.reshape(-1, 3)[model.mesh.centre_nodes, 2]
         # A unit that becomes driven starts from where its centre is now.
         d0 = np.where(np.array(self._modes) == DRIVEN, self._displacement, centre)
-        x, r, point, stats = self.solver.solve(self._x, modes, d0, d1, self._voltage, v1, check_stability)
+        try:
+            x, r, point, stats = self.solver.solve(self._x, modes, d0, d1, self._voltage, v1, check_stability, cancel)
+        except (ConvergenceError, SolveCancelled):
+            # The solver's tangent is now one at a step on the way (and the one at the state
+            # kept may have been overwritten in its factor slot): the next solve factors afresh.
+            self.solver.factorisation = None
+            raise
         self._x, self._modes, self._voltage = x, modes, v1
         out = model.outputs(x, r, point, v1, modes)
         self._displacement = np.where(np.array(modes) == DRIVEN, d1, out.centre_deflection)
