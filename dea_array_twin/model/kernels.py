@@ -167,6 +167,52 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
                             values[position[e, 3 * nb + j, 3 * na + i]] += v
 
 
+@numba.njit(**_JIT)
+def _min_principal_stress(c, g, skip):
+    """Smallest in-plane principal Cauchy stress over the points of elements not ``skip``-ped.
+
+    :func:`.material.principal_cauchy_stresses`: the eigenvalues of ``m = C S``,
+    ``tr m / 2 - sqrt(((m00 - m11) / 2)^2 + m01 m10)``.
+    """
+    ne, nq, _ = c.shape
+    low = np.inf
+    for e in range(ne):
+        if skip[e]:
+            continue
+        for q in range(nq):
+            c0, c1, c2 = c[e, q, 0], c[e, q, 1], c[e, q, 2]
+            s00, s11, s01 = 2.0 * g[e, q, 0], 2.0 * g[e, q, 1], g[e, q, 2]
+            m00, m01 = c0 * s00 + c2 * s01, c0 * s01 + c2 * s11
+            m10, m11 = c2 * s00 + c1 * s01, c2 * s01 + c1 * s11
+            half = 0.5 * (m00 - m11)
+            value = 0.5 * (m00 + m11) - np.sqrt(max(half * half + m01 * m10, 0.0))
+            low = min(low, value)
+    return low
+
+
+@numba.njit(**_JIT)
+def _energy(c, wt, maxwell, c10, c20, c30):
+    """``sum_q t0 w_q Psi(c_q)`` with ``Psi = Y(I - 3) - k det C`` (:func:`.material.energy_density`)."""
+    ne, nq, _ = c.shape
+    total = 0.0
+    for e in range(ne):
+        for q in range(nq):
+            det = c[e, q, 0] * c[e, q, 1] - c[e, q, 2] ** 2
+            xi = c[e, q, 0] + c[e, q, 1] + 1.0 / det - 3.0
+            total += wt[e, q] * (xi * (c10 + xi * (c20 + xi * c30)) - maxwell[e] * det)
+    return total
+
+
+def min_principal_stress(point: PointState, skip: np.ndarray) -> float:
+    """Smallest principal Cauchy stress [Pa] over the elements where ``skip`` is False."""
+    return float(_min_principal_stress(point.c, point.g, skip))
+
+
+def energy(disc: Discretisation, point: PointState, yeoh: Yeoh, maxwell: np.ndarray, thickness: float) -> float:
+    """Stored energy ``t0 sum_q w_q Psi`` [J] of a point state; ``maxwell`` per element [Pa]."""
+    return float(_energy(point.c, thickness * disc.weight, maxwell, yeoh.c10, yeoh.c20, yeoh.c30))
+
+
 def internal_forces(disc: Discretisation, x: np.ndarray, yeoh: Yeoh, maxwell: np.ndarray,
                     thickness: float) -> tuple[np.ndarray, PointState]:
     """Compiled :func:`.assembly.internal_forces`: internal forces [N] and the point state."""

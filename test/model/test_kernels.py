@@ -6,6 +6,7 @@ import pytest
 from dea_array_twin import ArrayConfig
 from dea_array_twin.model import kernels
 from dea_array_twin.model.assembly import element_tangents, internal_forces
+from dea_array_twin.model.material import energy_density, principal_cauchy_stresses
 from dea_array_twin.model.membrane import MembraneModel
 
 
@@ -39,3 +40,19 @@ def test_compiled_residual_and_tangent_equal_the_numpy_reference(order):
     # A test that can fail: the Maxwell term changes the tangent far above that tolerance.
     _, off = kernels.tangent_values(model.disc, model.pattern, x, model.yeoh, 0.0 * maxwell, model.thickness)
     assert np.abs(off - values_ref).max() > 1e-6 * np.abs(values_ref).max()
+
+
+def test_compiled_energy_and_smallest_principal_stress_equal_the_numpy_reference():
+    """What every result reports besides forces: the stored energy (sum of t0 w Psi) and the
+    smallest principal Cauchy stress outside held disks, to 1e-12 relative."""
+    model = MembraneModel(ArrayConfig(layout="circular"))
+    x = _wavy_state(model)
+    maxwell = np.where(model.mesh.element_unit >= 0, 4e4, 0.0)
+    _, point = internal_forces(model.disc, x, model.yeoh, maxwell, model.thickness)
+    reference = model.thickness * np.sum(model.disc.weight * energy_density(point.c, model.yeoh, maxwell[:, None]))
+    assert kernels.energy(model.disc, point, model.yeoh, maxwell, model.thickness) == pytest.approx(
+        reference, rel=1e-12)
+    held = model.mesh.element_in_indenter
+    sigma = principal_cauchy_stresses(point.c[~held], point.g[~held])[..., 0]
+    assert kernels.min_principal_stress(point, held) == pytest.approx(sigma.min(), rel=1e-12)
+    assert kernels.min_principal_stress(point, np.zeros_like(held)) <= sigma.min()
