@@ -3,6 +3,7 @@
 Run:
   .venv/bin/python benchmarks/bench_core.py [CONFIG] [--rounds N] [--before DIR]
   .venv/bin/python benchmarks/bench_core.py --arrays [--sizes 1x3,2x2,3x3,4x4,8x8] [--refine 1.5,2,3]
+  .venv/bin/python benchmarks/bench_core.py --node SECONDS
 
 Default: the 1-by-3 array (CONFIG, default the paper's Table 1 and mesh), unit 2
 driven, its neighbours free, V = 0:
@@ -22,6 +23,10 @@ grids with square frames of n D + (n - 1) d + 2 b (155 mm for 4x4, 295 mm for 8x
 default mesh sizes, plus the 1-by-3 with every mesh size divided by the --refine
 factors; dofs, mesh time, first solve to 5 mm, warm (0.1 mm) and checked update
 medians, and the growth exponent of time against dofs.
+
+``--node``: the twin node in its own process at ``update_rate: 500`` with a smooth
+command stream (a 1 Hz sine on each unit, sent at 500 Hz), stability checks at the
+default period; the share of ticks it publishes outputs for (goal >= 99 %).
 
 Not a test: numbers for the notes.  The load (``os.getloadavg``) is printed with them.
 """
@@ -253,6 +258,40 @@ def main_arrays(args) -> None:
               f"{_load()} at the end")
 
 
+# ----------------------------------------------------------------------------- node
+def main_node(args) -> None:
+    """The twin node (its own process) at update_rate 500 on a 1 Hz sine command on each unit."""
+    import math
+
+    from dea_array_twin.ros.testing import TwinHarness
+
+    rate, seconds = 500.0, args.node
+    params = {"update_rate": rate, "marker_rate": 0.0}
+    print(f"node: update_rate {rate:g} Hz, commands at {rate:g} Hz: unit k at 5 + 4 sin(2 pi t + 2 pi k / 3) mm, "
+          f"stability_check_period 1 s (default); {seconds:g} s measured after 2 s; {_load()} at start")
+    with TwinHarness(parameters=params, process=True) as h:
+        start = time.monotonic()
+        window = None
+        tick = start
+        while time.monotonic() - start < seconds + 2.0:
+            t = time.monotonic() - start
+            h.send_displacement([0.005 + 0.004 * math.sin(2 * math.pi * (t + k / 3.0)) for k in range(3)])
+            if window is None and t >= 2.0:
+                h.clear()
+                window = time.monotonic()
+            tick += 1.0 / rate
+            time.sleep(max(0.0, tick - time.monotonic()))
+        elapsed = time.monotonic() - window
+        forces = len(h.messages("force"))
+        diags = [m for m in h.messages("/diagnostics")]
+    values = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
+    held = forces / (rate * elapsed)
+    print(f"  force messages {forces} in {elapsed:.2f} s = {forces / elapsed:.1f} /s: {100 * held:.1f} % of the "
+          f"ticks (goal >= 99 %); last diagnostics: updates {values.get('updates')}, skipped_ticks "
+          f"{values.get('skipped_ticks')}, solve_time_ms {values.get('solve_time_ms')}, iterations "
+          f"{values.get('iterations')}; {_load()} at the end")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -262,6 +301,8 @@ def main() -> None:
     parser.add_argument("--arrays", action="store_true", help="the scaling table instead")
     parser.add_argument("--sizes", default="1x3,2x2,3x3,4x4,8x8", help="grids for --arrays")
     parser.add_argument("--refine", default="1.5,2,3", help="mesh refinement factors of the 1x3 for --arrays")
+    parser.add_argument("--node", type=float, metavar="SECONDS",
+                        help="measure the twin node at update_rate 500 on a sine command for SECONDS instead")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -270,6 +311,8 @@ def main() -> None:
         print(json.dumps(measure_row(load_config(args.config))))
     elif args.arrays:
         main_arrays(args)
+    elif args.node:
+        main_node(args)
     else:
         main_row(args)
 
