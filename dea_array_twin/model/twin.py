@@ -202,7 +202,7 @@ class ArrayTwin:
         check_stability : bool, optional
             Factor the tangent at the new state and report whether it is a stable
             minimum (``result.stable``); default: the solver setting.  Costs one
-            factorisation (about 20 ms on the default mesh); without it
+            factorisation (about 7 ms on the default mesh); without it
             ``result.stable`` is None.
         cancel : callable, optional
             Asked with no arguments before every Newton iteration; when it returns
