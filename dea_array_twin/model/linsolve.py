@@ -25,6 +25,8 @@ Back ends:
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -33,6 +35,21 @@ from . import ldl
 from .assembly import SparsePattern
 
 BACKENDS = ("block", "superlu")
+
+#: Factorisers per pattern (shared by the twins of one geometry, see
+#: ``membrane._PATTERNS``) and set of free dofs: the symbolic analysis is pure data.
+_FACTORISERS: "weakref.WeakKeyDictionary[SparsePattern, dict]" = weakref.WeakKeyDictionary()
+
+
+def factoriser(pattern: SparsePattern, free: np.ndarray, backend: str = "block") -> "Factoriser":
+    """The :class:`Factoriser` of ``free`` on ``pattern``, made once (a few of the newest kept)."""
+    cache = _FACTORISERS.setdefault(pattern, {})
+    key = (free.tobytes(), backend)
+    if key not in cache:
+        if len(cache) >= 8:  # unit modes rarely change
+            cache.pop(next(iter(cache)))
+        cache[key] = Factoriser(pattern, free, backend)
+    return cache[key]
 
 
 class LDLFactor:

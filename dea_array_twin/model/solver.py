@@ -38,7 +38,7 @@ from typing import Callable
 import numpy as np
 
 from .kernels import internal_forces, tangent_values
-from .linsolve import BACKENDS, Factoriser, LDLFactor
+from .linsolve import BACKENDS, Factoriser, LDLFactor, factoriser
 from .membrane import DRIVEN, MembraneModel
 
 
@@ -114,7 +114,7 @@ class Factorisation:
     k_fp: object
     free: np.ndarray
     prescribed: np.ndarray
-    at_solution: bool = False
+    state: np.ndarray | None = None  # the converged positions it was computed at, if any
     _influence: dict = field(default_factory=dict)
     _negative: int | None = None
 
@@ -183,7 +183,6 @@ class EquilibriumSolver:
         self.model = model
         self.settings = settings or NewtonSettings()
         self.factorisation: Factorisation | None = None
-        self._factorisers: dict[bytes, Factoriser] = {}
         self._disk_groups: dict[tuple[str, ...], list[np.ndarray]] = {}
         self._last_path: tuple | None = None  # (end state, its free and prescribed change, free, voltage)
 
@@ -203,12 +202,7 @@ class EquilibriumSolver:
 
     def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
         """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``."""
-        key = free.tobytes()
-        if key not in self._factorisers:
-            if len(self._factorisers) >= 8:  # unit modes rarely change; keep the newest few
-                self._factorisers.pop(next(iter(self._factorisers)))
-            self._factorisers[key] = Factoriser(self.model.pattern, free, self.settings.linear_solver)
-        factor = self._factorisers[key].factor(values)
+        factor = factoriser(self.model.pattern, free, self.settings.linear_solver).factor(values)
         return Factorisation(factor, self.model.pattern.block(values, free, prescribed), free, prescribed)
 
     # ------------------------------------------------------------------ one step
@@ -318,7 +312,7 @@ class EquilibriumSolver:
             change = trial[prescribed] - x[prescribed]
             if t == 1.0 and done == 0.0 and secant is not None:  # the last solve's path, continued
                 scale, dx_last, dp_last = secant
-                if fact.at_solution:  # the tangent at x itself: quadratic extrapolation (see _secant)
+                if fact.state is not None and fact.state is self._last_path[0]:  # tangent at x: quadratic
                     trial[free] += (scale + scale**2) * fact.predict(dp_last, groups) - scale**2 * dx_last
                     change = change - scale * dp_last
                 else:
@@ -344,7 +338,7 @@ class EquilibriumSolver:
             x_new, r, point, fact_used = outcome
             if check or fact_used is None:
                 fact_new = self._factorise(self._tangent(x_new, m.maxwell(v0 + t * (v1 - v0))), free, prescribed)
-                fact_new.at_solution = True
+                fact_new.state = x_new
                 stats.factorisations += 1
                 if start_stable and fact_new.negative_pivots > 0 and t - done > s.unstable_step:
                     retries += 1  # a long step onto an unstable state: retry it in halves
