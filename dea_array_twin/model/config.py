@@ -17,6 +17,8 @@ import numpy as np
 from .material import EPS0, Yeoh
 
 LAYOUTS = ("array", "circular")
+#: Table fields (tuples of float, given as any sequence of numbers).
+_TABLES = ("slip_displacement", "slip_factor", "experimental_hv_prestretch", "experimental_hv_voltage")
 SHAPES = ("circle", "square")
 
 
@@ -82,6 +84,14 @@ class ArrayConfig:
         the entries, constant beyond the ends; displacements strictly increasing
         and >= 0; factors in (0, 1].  Empty (the default) = no slip, gamma = 1.
         See :meth:`slip` and :meth:`.membrane.MembraneModel.edge_stretch`.
+    experimental_hv_prestretch, experimental_hv_voltage : tuple of float
+        The high voltage [V] the paper's experiments applied at each pre-stretch
+        (section 5.1): 2730 V at lp = 1.10 and 2300 V at lp = 1.20, chosen there for a
+        safe 80 V/um at the 15 mm stroke.  The HV of the figure 12-16 curves
+        (``dea-twin study curves``), looked up by :meth:`experimental_hv`.  Not the
+        section-6 study voltage, which is eq. 14 (:meth:`hv_voltage`).  Pre-stretches
+        strictly increasing, in (1, 5]; voltages finite and > 0; empty = no
+        experimental HV known.
     """
 
     layout: str = "array"
@@ -109,9 +119,11 @@ class ArrayConfig:
     max_displacement: float = 0.030
     slip_displacement: tuple[float, ...] = ()
     slip_factor: tuple[float, ...] = ()
+    experimental_hv_prestretch: tuple[float, ...] = (1.10, 1.20)
+    experimental_hv_voltage: tuple[float, ...] = (2730.0, 2300.0)
 
     def __post_init__(self) -> None:
-        for name in ("slip_displacement", "slip_factor"):  # accept any sequence of numbers
+        for name in _TABLES:  # accept any sequence of numbers
             object.__setattr__(self, name, _coerce(name, getattr(self, name), tuple))
         validate(self)
 
@@ -148,6 +160,22 @@ class ArrayConfig:
     def hv_voltage(self, critical_field: float = 80e6) -> float:
         """Paper eq. 14: ``V = Ec t0 / lp^2`` [V], flat-state field = ``critical_field``."""
         return critical_field * self.thickness / self.prestretch**2
+
+    def experimental_hv(self) -> float:
+        """The experiments' HV [V] at this config's pre-stretch (paper section 5.1).
+
+        Raises
+        ------
+        ConfigError
+            If ``prestretch`` is not in ``experimental_hv_prestretch`` (to 1e-9): the
+            paper gives no rule between its two pre-stretches, so none is invented.
+        """
+        for lp, volt in zip(self.experimental_hv_prestretch, self.experimental_hv_voltage):
+            if abs(lp - self.prestretch) <= 1e-9:
+                return volt
+        raise ConfigError(f"experimental_hv_prestretch: no experimental HV for prestretch {self.prestretch:g} "
+                          f"(the table lists {list(self.experimental_hv_prestretch)}); add it to the table or "
+                          "use the eq. 14 voltage")
 
     def slip(self, displacement: float) -> float:
         """Slip factor gamma(d) of eq. 11.
@@ -244,6 +272,7 @@ def validate(cfg: ArrayConfig) -> None:
     _require(1.0 < cfg.prestretch <= 5.0, "prestretch",
              f"must be in (1, 5]: a membrane at lp <= 1 is slack, got {cfg.prestretch}")
     _validate_slip(cfg)
+    _validate_experimental_hv(cfg)
     _require(cfg.element_order in (1, 2), "element_order", f"must be 1 or 2, got {cfg.element_order}")
     for name in ("mesh_size_indenter", "mesh_size_electrode"):
         _require(getattr(cfg, name) <= cfg.mesh_size, name,
@@ -282,3 +311,16 @@ def _validate_slip(cfg: ArrayConfig) -> None:
              f"must be strictly increasing, got {list(disp)}")
     _require(all(math.isfinite(v) and 0 < v <= 1 for v in factor), "slip_factor",
              f"must be in (0, 1] (slip only reduces the frame's pre-stretch), got {list(factor)}")
+
+
+def _validate_experimental_hv(cfg: ArrayConfig) -> None:
+    """Check the experimental HV table: equal lengths, pre-stretches increasing in (1, 5], voltages > 0."""
+    stretches, volts = cfg.experimental_hv_prestretch, cfg.experimental_hv_voltage
+    _require(len(stretches) == len(volts), "experimental_hv_voltage",
+             f"needs one voltage per experimental_hv_prestretch entry ({len(stretches)}), got {len(volts)}")
+    _require(all(math.isfinite(v) and 1.0 < v <= 5.0 for v in stretches), "experimental_hv_prestretch",
+             f"must be in (1, 5], got {list(stretches)}")
+    _require(all(b > a for a, b in zip(stretches, stretches[1:])), "experimental_hv_prestretch",
+             f"must be strictly increasing, got {list(stretches)}")
+    _require(all(math.isfinite(v) and v > 0 for v in volts), "experimental_hv_voltage",
+             f"must be finite and > 0 V, got {list(volts)}")

@@ -27,6 +27,7 @@ _UNITS = {
     "mesh_size_electrode": "m", "max_displacement": "m", "c10": "Pa", "c20": "Pa", "c30": "Pa",
     "breakdown_field": "V/m", "scale": "-", "epsr": "-", "prestretch": "-",
     "slip_displacement": "m", "slip_factor": "-",
+    "experimental_hv_prestretch": "-", "experimental_hv_voltage": "V",
 }
 _RANGES = {"rows": (1, 64), "cols": (1, 64), "element_order": (1, 2)}
 

@@ -1,11 +1,13 @@
 """Other layouts: N x M grids, square electrodes, unit numbering and geometry checks."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
-from dea_array_twin import ArrayConfig, ArrayTwin
+from dea_array_twin import ArrayConfig, ArrayTwin, ConfigError, load_config
 from dea_array_twin.model.geometry import edge_distance, unit_centres
 
 
@@ -58,3 +60,33 @@ def test_paper_hv_voltage_gives_the_critical_flat_field():
         assert v == pytest.approx(80e6 * 50e-6 / lp**2)
         assert v * lp**2 / cfg.thickness == pytest.approx(80e6)
     assert ArrayConfig().hv_voltage() == pytest.approx(3305.785, rel=1e-6)
+
+
+def test_experimental_hv_is_the_papers_voltage_per_prestretch_and_refuses_other_prestretches():
+    """Section 5.1: 2730 V at lp = 1.10, 2300 V at lp = 1.20; no rule in between is invented."""
+    assert ArrayConfig(prestretch=1.10).experimental_hv() == 2730.0
+    assert ArrayConfig(prestretch=1.2).experimental_hv() == 2300.0
+    with pytest.raises(ConfigError, match="no experimental HV for prestretch 1.15.*1.1, 1.2"):
+        ArrayConfig(prestretch=1.15).experimental_hv()
+    own = ArrayConfig(prestretch=1.3, experimental_hv_prestretch=[1.3], experimental_hv_voltage=[2000])
+    assert own.experimental_hv() == 2000.0 and isinstance(own.experimental_hv_voltage[0], float)
+
+
+@pytest.mark.parametrize("changes, field", [
+    ({"experimental_hv_voltage": (2730.0,)}, "experimental_hv_voltage"),
+    ({"experimental_hv_prestretch": (1.2, 1.1)}, "experimental_hv_prestretch"),
+    ({"experimental_hv_prestretch": (1.0, 1.2)}, "experimental_hv_prestretch"),
+    ({"experimental_hv_voltage": (2730.0, -1.0)}, "experimental_hv_voltage"),
+    ({"experimental_hv_voltage": (2730.0, float("nan"))}, "experimental_hv_voltage"),
+    ({"experimental_hv_voltage": "2730"}, "experimental_hv_voltage"),
+])
+def test_a_bad_experimental_hv_table_names_the_field(changes, field):
+    with pytest.raises(ConfigError, match=f"^{field}"):
+        ArrayConfig(**changes)
+
+
+def test_the_shipped_default_yaml_holds_the_config_defaults():
+    """config/default.yaml shows the defaults, the experimental HV table included."""
+    path = Path(__file__).resolve().parents[2] / "config" / "default.yaml"
+    assert load_config(path) == ArrayConfig()
+    assert {"experimental_hv_prestretch", "experimental_hv_voltage"} <= set(yaml.safe_load(path.read_text()))
