@@ -1,8 +1,9 @@
 """``dea-twin study``: the paper's studies as CSV + PNG files in an output folder.
 
 ``coupling``   the three coupling indices of one configuration (eqs. 13-16)
-``curves``     force and capacitance curves of every unit swept, neighbours free or
-               pre-deflected, at 0 V and at the eq. 14 voltage (figures 12-16 style)
+``curves``     the experiments' curves, figures 12-16: DE1 and DE2 swept to 15 mm at
+               lp = 1.10 and 1.20, neighbours free or pre-deflected by 4, 6 or 8 mm,
+               at 0 V and at the experiments' HV (2730 V / 2300 V)
 ``sweep NAME`` one of section 6's studies: spacing, edge_distance, prestretch, scale,
                shape, or ``all`` of them plus the coupling of the base configuration
 
@@ -40,11 +41,15 @@ PAPER = {
 }
 
 
-def _neighbours(text: str) -> list[float | str | None]:
-    out: list[float | str | None] = []
+#: The paper's figure numbers of the curves at its two pre-stretches: (capacitance, force).
+PAPER_FIGURES = {1.10: (12, 15), 1.20: (13, 16)}
+
+
+def _neighbours(text: str) -> list[float | None]:
+    out: list[float | None] = []
     for item in text.replace(",", " ").split():
-        if item in ("free", "pre"):
-            out.append(None if item == "free" else "pre")
+        if item == "free":
+            out.append(None)
         else:
             try:
                 out.append(float(item))
@@ -68,13 +73,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                 help="coupling indices eta_F,LV, eta_F,HV, eta_C (eqs. 13-16)")
     coupling.add_argument("config", nargs="?", help=config_help)
     curves = kinds.add_parser("curves", parents=[common],
-                              help="every unit swept to --to, others free or pre-deflected, LV and HV")
-    curves.add_argument("--to", type=float, help="final displacement [m] (default 0.75 D)")
-    curves.add_argument("--neighbours", type=_neighbours, default=[None, "pre"],
-                        help="comma-separated 'free', 'pre' (0.4 D) and/or pre-deflections [m] of the "
-                             "other units (default: free,pre)")
+                              help="figures 12-16: DE1 and DE2 swept, neighbours free or pre-deflected, LV and HV")
     curves.add_argument("config", nargs="?", help=config_help)
-    curves.add_argument("--voltages", type=float_list(), help="voltages on the swept unit [V] (default: 0 and eq. 14)")
+    curves.add_argument("--prestretch", type=float_list(example="1.10,1.20"),
+                        help="pre-stretches to run (default: those of the config's experimental_hv_prestretch, "
+                             "the paper's 1.10 and 1.20)")
+    curves.add_argument("--hv", choices=("experimental", "eq14"), default="experimental",
+                        help="HV on the swept unit: the experiments' per pre-stretch (config experimental_hv_*, "
+                             "default: 2730 V at 1.10, 2300 V at 1.20) or eq. 14, Ec t0 / lp^2")
+    curves.add_argument("--voltages", type=float_list(example="0,2730"),
+                        help="voltages on the swept unit [V] at every pre-stretch, instead of 0 and --hv")
+    curves.add_argument("--neighbours", type=_neighbours,
+                        help="comma-separated 'free' and/or pre-deflections [m] of the other units, 0 = held flat "
+                             "(default: free,0.2D,0.3D,0.4D = free,0.004,0.006,0.008); the first setting is "
+                             "also that of the capacitance figure")
+    curves.add_argument("--to", type=float, help="final displacement [m] (default 0.75 D = 15 mm)")
     sweep = kinds.add_parser("sweep", parents=[common], help="a parameter study of section 6")
     sweep.add_argument("name", choices=[*study.SWEEPS, "shape", "all"])
     sweep.add_argument("config", nargs="?", help=config_help)
@@ -98,11 +111,12 @@ def _run(tasks: list[CurveTask], args: argparse.Namespace, label: str) -> list[C
 
 
 def curve_rows(results: Sequence[CurveResult | CurveFailure]) -> tuple[list[str], list[list]]:
-    """Long-format table of every point of every curve (SI units)."""
+    """Long-format table of every point of every curve (SI units; dC from the start of each curve)."""
     n = results[0].task.config.n_units
     units = range(1, n + 1)
     head = (["study", "value", "case", "swept_unit", "neighbours_m", "voltage_V", "displacement_m"]
             + [f"F{k}_N" for k in units] + [f"C{k}_F" for k in units] + [f"dC{k}_F" for k in units]
+            + [f"peak_field{k}_V_m" for k in units]
             + ["min_principal_stress_Pa", "wrinkled", "field_exceeded", "stable", "error"])
     rows = []
     for res in results:
@@ -114,8 +128,8 @@ def curve_rows(results: Sequence[CurveResult | CurveFailure]) -> tuple[list[str]
             continue
         for i, d in enumerate(res.displacement):
             rows.append(lead + [d, *res.force[i], *res.capacitance[i], *res.delta_capacitance[i],
-                                res.min_principal_stress[i], int(res.wrinkled[i]), int(res.field_exceeded[i]),
-                                int(res.stable[i]), ""])
+                                *res.peak_field[i], res.min_principal_stress[i], int(res.wrinkled[i]),
+                                int(res.field_exceeded[i]), int(res.stable[i]), ""])
     return head, rows
 
 
@@ -204,20 +218,86 @@ def _shape(base: ArrayConfig, args: argparse.Namespace, out: Path, summary: list
 
 
 def _curves(base: ArrayConfig, args: argparse.Namespace, out: Path, summary: list[str]) -> bool:
-    from ..studies.plots import plot_curves
+    """Figures 12-16 per pre-stretch: ``capacitance_lpX.csv/png`` and ``force_lpX.csv/png``."""
+    from ..studies.plots import plot_capacitance_figure, plot_force_figure
 
-    tasks = study.curves_tasks(base, args.steps, args.to, args.neighbours, args.voltages)
-    stroke = tasks[0].stroke
+    configs = [base.replace(prestretch=lp)
+               for lp in args.prestretch or base.experimental_hv_prestretch or (base.prestretch,)]
+    tasks = []
+    for cfg in configs:
+        voltages = args.voltages
+        if voltages is None:
+            hv = cfg.experimental_hv() if args.hv == "experimental" else cfg.hv_voltage(study.CRITICAL_FIELD)
+            voltages = [0.0, hv]
+        tasks += study.curves_tasks(cfg, args.steps, args.to, args.neighbours, voltages)
     results = _run(tasks, args, "curves")
-    _write_csv(out / "curves.csv", *curve_rows(results))
     ok = all(isinstance(r, CurveResult) for r in results)
-    if ok:
-        plot_curves(results, out / "curves.png")  # type: ignore[arg-type]
-    flagged = sorted({f"unit {r.task.swept + 1}, neighbours {r.task.key[1]}, {r.task.key[2]}" for r in results
-                      if isinstance(r, CurveResult) and (r.wrinkled.any() or r.field_exceeded.any())})
-    summary += ["## curves", "", f"{len(results)} curves, swept to {stroke * 1e3:g} mm.",
-                *(f"- flagged (wrinkling or field): {f}" for f in flagged), ""]
+    for cfg in configs:
+        mine = [r for r in results if r.task.key[1] == cfg.prestretch]
+        first = mine[0].task  # its voltage and neighbours: those of the capacitance figure
+        cap = [r for r in mine if (r.task.voltage, r.task.neighbours) == (first.voltage, first.neighbours)]
+        stem = f"lp{cfg.prestretch:.2f}"
+        figures = PAPER_FIGURES.get(round(cfg.prestretch, 6))
+        _write_csv(out / f"capacitance_{stem}.csv", *curve_rows(cap),
+                   notes=[f"capacitance curves at lp = {cfg.prestretch:g}, {first.voltage:g} V, neighbours "
+                          f"{study.neighbour_label(first.neighbours)}; dC from the start of each curve"])
+        _write_csv(out / f"force_{stem}.csv", *curve_rows(mine),
+                   notes=[f"force curves at lp = {cfg.prestretch:g}; dC from the start of each curve"])
+        if ok:
+            cf = f" (cf. paper figure {figures[0]})" if figures else ""
+            ff = f" (cf. paper figure {figures[1]})" if figures else ""
+            plot_capacitance_figure(cap, out / f"capacitance_{stem}.png",  # type: ignore[arg-type]
+                                    f"capacitance change, lp = {cfg.prestretch:.2f}, {first.voltage:g} V, neighbours "
+                                    f"{study.neighbour_label(first.neighbours)}{cf}")
+            plot_force_figure(mine, out / f"force_{stem}.png",  # type: ignore[arg-type]
+                              f"force, lp = {cfg.prestretch:.2f}{ff}")
+        summary += curves_summary(cfg, mine, cap, figures)
     return ok
+
+
+def curves_summary(cfg: ArrayConfig, results: Sequence[CurveResult | CurveFailure],
+                   cap: Sequence[CurveResult | CurveFailure], figures: tuple[int, int] | None) -> list[str]:
+    """Markdown: the capacitance changes and force maxima of one pre-stretch's curves, and their flags."""
+    lp = f"{cfg.prestretch:.2f}"
+    volts = sorted({r.task.voltage for r in results})
+    lines = [f"## curves at lp = {lp}" + (f" (paper figures {figures[0]} and {figures[1]})" if figures else ""), "",
+             f"{len(results)} curves swept to {results[0].task.stroke * 1e3:g} mm, voltages "
+             f"{', '.join(f'{v:g}' for v in volts)} V.", ""]
+    done = [r for r in cap if isinstance(r, CurveResult)]
+    units = sorted({r.task.swept for r in done})
+    if done:
+        lines += [f"Largest capacitance change [pF] (`capacitance_lp{lp}.png`, from the start of each test):", "",
+                  "| deformed \\ measured | " + " | ".join(f"DE{u + 1}" for u in units) + " |",
+                  "|---" * (len(units) + 1) + "|"]
+        lines += [f"| DE{r.task.swept + 1} | " + " | ".join(
+            f"{study.largest(r.delta_capacitance[:, u]) * 1e12:.3f}" for u in units) + " |" for r in done]
+        lines.append("")
+    settings = list(dict.fromkeys(r.task.neighbours for r in results))
+    forces = {(r.task.neighbours, r.task.swept, r.task.voltage): float(r.force[:, r.task.swept].max())
+              for r in results if isinstance(r, CurveResult)}
+    columns = [(u, v) for u in units for v in volts]
+    lines += [f"Largest force [N] (`force_lp{lp}.png`):", "",
+              "| neighbours | " + " | ".join(f"DE{u + 1}, {v:g} V" for u, v in columns) + " |",
+              "|---" * (len(columns) + 1) + "|"]
+    for nb in settings:
+        cells = [f"{forces[(nb, u, v)]:.4f}" if (nb, u, v) in forces else "failed" for u, v in columns]
+        lines.append(f"| {study.neighbour_label(nb)} | " + " | ".join(cells) + " |")
+    flagged = [f"- flagged: {r.task.key[-1]}: " + ", ".join(
+        name for name, on in (("wrinkling", r.wrinkled.any()), ("field above breakdown_field", r.field_exceeded.any()),
+                              ("unstable", not r.stable.all())) if on)
+        for r in results if isinstance(r, CurveResult) and (r.wrinkled.any() or r.field_exceeded.any()
+                                                               or not r.stable.all())]
+    failed = [f"- FAILED: {r.task.key[-1]}: {r.message}" for r in results if isinstance(r, CurveFailure)]
+    return lines + [""] + flagged + failed + ([""] if flagged or failed else [])
+
+
+def _hv_text(args: argparse.Namespace) -> str:
+    """Which HV the study applies, for the summary."""
+    if args.study != "curves" or args.hv == "eq14":
+        return "HV = Ec t0 / lp^2 with Ec = 80 V/um (eq. 14)" + (" unless --voltages" if args.study == "curves" else "")
+    if args.voltages is not None:
+        return f"voltages {', '.join(f'{v:g}' for v in args.voltages)} V (--voltages)"
+    return "HV = the experiments' voltage at each pre-stretch (config experimental_hv_*, section 5.1)"
 
 
 def run_from_args(args: argparse.Namespace) -> int:
@@ -240,7 +320,7 @@ def run_from_args(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
         summary = [f"# dea-twin study {args.study}{' ' + args.name if args.study == 'sweep' else ''}", "",
                    f"Base configuration: {args.config or 'the paper default (Table 1, lp = 1.10)'}; "
-                   f"HV = Ec t0 / lp^2 with Ec = 80 V/um (eq. 14). Mesh: order {base.element_order}, element sizes "
+                   f"{_hv_text(args)}. Mesh: order {base.element_order}, element sizes "
                    f"{base.mesh_size * 1e3:g}/{base.mesh_size_electrode * 1e3:g}/{base.mesh_size_indenter * 1e3:g} mm "
                    f"(far field/electrode edges/indenter edges, before scaling); {args.steps} steps per curve.", ""]
         if args.study == "curves":

@@ -1,4 +1,4 @@
-"""PNG figures of the studies, in the style of the paper's figures 12-23.
+"""PNG figures of the studies, in the panel layout of the paper's figures 12-23.
 
 Matplotlib's object-oriented API on the Agg canvas (no pyplot, no display).  Axes
 show mm, N and pF; points where the solver flagged wrinkling are drawn hollow.
@@ -11,7 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .tasks import CurveResult, Sweep
+from .tasks import CurveResult, Sweep, coupling_indices, neighbour_label
 
 #: The paper's markers: eta_F,LV blue circles, eta_F,HV red stars, eta_C green diamonds.
 _INDICES = (("eta_f_lv", "$\\eta_{F,LV}$", "o", "tab:blue"), ("eta_f_hv", "$\\eta_{F,HV}$", "*", "tab:red"),
@@ -33,7 +33,7 @@ def _figure(rows: int, cols: int, size: tuple[float, float]):
 
 
 def plot_sweep(sweep: Sweep, rows: Sequence[dict], path: Path) -> Path:
-    """The three indices against the swept parameter (figures 19-22).
+    """The three indices against the swept parameter (figures 19-22), the HV in the legend.
 
     Hollow markers: a curve that index comes from was flagged as wrinkled at that
     point.  For the scale sweep a dotted line marks where d falls below the air
@@ -43,7 +43,10 @@ def plot_sweep(sweep: Sweep, rows: Sequence[dict], path: Path) -> Path:
     fig, axes = _figure(1, 1, (7, 4.5))
     ax = axes[0, 0]
     x = np.array([row["value"] for row in rows]) * factor
+    volts = {round(row["hv_voltage_V"]) for row in rows}
+    hv = f"{volts.pop()} V" if len(volts) == 1 else "$E_C t_0 / \\lambda_p^2$"
     for key, name, marker, colour in _INDICES:
+        name = f"{name} (HV = {hv}, eq. 14)" if key == "eta_f_hv" else name
         y = np.array([row[key] for row in rows], dtype=float)
         ax.plot(x, y, "-", color=colour, lw=0.8)
         wrinkled = np.array([bool(set(str(row.get("wrinkled", "")).split()) & set(_SOURCES[key]))
@@ -75,46 +78,115 @@ def _curve_axes(ax, res: CurveResult, unit: int, kind: str, style: str, colour: 
         ax.plot(d[res.wrinkled], y[res.wrinkled], "o", mfc="none", ms=4, color=colour)
 
 
+def _mark_max(ax, res: CurveResult, unit: int, kind: str, colour: str, text: str) -> float:
+    """Mark the largest-magnitude value of a curve with ``text`` (formatted with it); return it."""
+    y = res.force[:, unit] if kind == "force" else res.delta_capacitance[:, unit] * 1e12
+    i = int(np.argmax(np.abs(y)))
+    ax.plot(res.displacement[i] * 1e3, y[i], ".", color=colour)
+    ax.annotate(text.format(y[i]), (res.displacement[i] * 1e3, y[i]), textcoords="offset points", xytext=(-7, 0),
+                ha="right", va="center", fontsize=7, color=colour)
+    return float(y[i])
+
+
+def _delta_arrow(ax, x: float, low: float, high: float, colour: str) -> None:
+    """A vertical double arrow from ``low`` to ``high`` at ``x`` (the paper's dF_max)."""
+    ax.annotate("", (x, low), (x, high), arrowprops={"arrowstyle": "<->", "color": colour, "lw": 0.8})
+
+
 def plot_coupling_curves(results: Sequence, path: Path) -> Path:
-    """Figures 17(c)/18(c): the measured unit's force (LV, HV; default and perturbed) and dC curves."""
+    """Figures 17(c)/18(c): the measured unit's force and dC curves, annotated like the paper's.
+
+    Force panel: LV (blue) and HV (red), default (solid) and perturbed (dashed), the
+    voltages in the legend, dF_max as an arrow between the two maxima and the index
+    (eqs. 13, 15).  Capacitance panel: the measured unit's dC with itself and with its
+    neighbour swept, dC_max of both and eta_C (eq. 16).  Indices need all five curves.
+    """
     fig, axes = _figure(1, 2, (11, 4.5))
     curves = {r.task.key[-1]: r for r in results if isinstance(r, CurveResult)}
     centre = results[0].task.swept
-    for case, style, colour in (("lv_default", "-", "tab:blue"), ("lv_perturbed", "--", "tab:blue"),
-                                ("hv_default", "-", "tab:red"), ("hv_perturbed", "--", "tab:red")):
-        if case in curves:
-            _curve_axes(axes[0, 0], curves[case], centre, "force", style, colour, case.replace("_", ", "))
-    cases = (("lv_default", "-", f"unit {centre + 1} swept"), ("c_neighbour", "--", "neighbour swept"))
-    for case, style, label in cases:
+    index = coupling_indices(curves) if len(curves) == len(results) == 5 else None
+    stroke = results[0].task.stroke * 1e3
+    for kind, colour in (("lv", "tab:blue"), ("hv", "tab:red")):
+        maxima = {}
+        for case, style in ((f"{kind}_default", "-"), (f"{kind}_perturbed", "--")):
+            if case in curves:
+                res = curves[case]
+                label = (f"{kind.upper()} {res.task.voltage:.0f} V, neighbours "
+                         f"{neighbour_label(res.task.neighbours)}")
+                _curve_axes(axes[0, 0], res, centre, "force", style, colour, label)
+                maxima[case] = float(res.force[:, centre].max())
+        if index is not None:
+            eta = index.eta_f_lv if kind == "lv" else index.eta_f_hv
+            low, high = sorted(maxima.values())
+            _delta_arrow(axes[0, 0], stroke, low, high, colour)
+            axes[0, 0].text(0.97, 0.05 + (0.09 if kind == "lv" else 0.0), f"$\\Delta F_{{max,{kind.upper()}}}$ = "
+                            f"{1e3 * (high - low):.1f} mN, $\\eta_{{F,{kind.upper()}}}$ = {eta:.2f} %",
+                            transform=axes[0, 0].transAxes, ha="right", color=colour)
+    maxima = {}
+    for case, style, label in (("lv_default", "-", f"unit {centre + 1} swept"),
+                               ("c_neighbour", "--", "neighbour swept")):
         if case in curves:
             _curve_axes(axes[0, 1], curves[case], centre, "capacitance", style, "tab:green", label)
+            maxima[case] = _mark_max(axes[0, 1], curves[case], centre, "capacitance", "tab:green",
+                                     "$\\Delta C_{{max}}$ = {:.2f} pF")
+    if index is not None:
+        axes[0, 1].text(0.03, 0.95, f"$\\eta_C$ = {index.eta_c:.2f} %", transform=axes[0, 1].transAxes,
+                        va="top", color="tab:green")
     return _save_pair(fig, axes, "swept unit's displacement [mm]", f"unit {centre + 1}",
                       "coupling curves (hollow circles: wrinkling flagged)", path)
 
 
-def plot_curves(results: Sequence[CurveResult], path: Path) -> Path:
-    """Figures 12-16: row = swept unit; columns = its force, then each unit's dC."""
-    n = results[0].task.config.n_units
-    fig, axes = _figure(n, n + 1, (3.2 * (n + 1), 2.6 * n))
-    colours = {nb: f"C{i % 10}" for i, nb in enumerate(dict.fromkeys(r.task.key[1] for r in results))}
-    volts = sorted({r.task.voltage for r in results})
+def plot_capacitance_figure(results: Sequence[CurveResult], path: Path, title: str) -> Path:
+    """Figures 12/13: row = unit deformed, column = unit measured; dC from the start of the test.
+
+    One curve per panel (the paper measures capacitance at 0 V, neighbours not
+    pre-deflected); the end value is written on it.
+    """
+    units = sorted({r.task.swept for r in results})
+    n = len(units)
+    fig, axes = _figure(n, n, (3.8 * n, 2.9 * n))
     for res in results:
-        k = res.task.swept
-        nb, volt = res.task.key[1], res.task.voltage
-        style = "-" if volt == volts[0] else "--"
-        label = f"neighbours {nb if nb == 'free' else f'{float(nb) * 1e3:g} mm'}, {volt:.0f} V"
-        _curve_axes(axes[k, 0], res, k, "force", style, colours[nb], label)
-        for j in range(n):
-            _curve_axes(axes[k, j + 1], res, j, "capacitance", style, colours[nb], label)
-    for k in range(n):
-        axes[k, 0].set_ylabel(f"unit {k + 1} swept\nforce F{k + 1} [N]")
-        for j in range(n):
-            axes[k, j + 1].set_title(f"dC{j + 1} [pF]", fontsize=9)
-        for ax in axes[k]:
+        i = units.index(res.task.swept)
+        for j, unit in enumerate(units):
+            ax = axes[i, j]
+            _curve_axes(ax, res, unit, "capacitance", "-", "tab:green", f"{res.task.voltage:g} V")
+            _mark_max(ax, res, unit, "capacitance", "tab:green", "{:.2f} pF")
+            ax.set_title(f"DE{res.task.swept + 1} deformed, DE{unit + 1} measured", fontsize=9)
             ax.grid(alpha=0.3)
+    for i in range(n):
+        axes[i, 0].set_ylabel("capacitance change [pF]")
+        axes[-1, i].set_xlabel("displacement of the deformed DE [mm]")
+    fig.suptitle(title)
+    fig.savefig(path, dpi=100)
+    return path
+
+
+def plot_force_figure(results: Sequence[CurveResult], path: Path, title: str) -> Path:
+    """Figures 15/16: row = neighbour setting, column = unit swept and measured; LV blue, HV red.
+
+    The legend gives each curve's voltage; its largest force is written on it.
+    """
+    units = sorted({r.task.swept for r in results})
+    settings = list(dict.fromkeys(r.task.neighbours for r in results))
+    volts = sorted({r.task.voltage for r in results})
+    colours = {v: "tab:blue" if i == 0 else ("tab:red" if i == 1 else f"C{i + 2}") for i, v in enumerate(volts)}
+    names = {v: "LV" if i == 0 and v == 0 else "HV" for i, v in enumerate(volts)}
+    fig, axes = _figure(len(settings), len(units), (4.2 * len(units), 2.5 * len(settings)))
+    for res in results:
+        i, j = settings.index(res.task.neighbours), units.index(res.task.swept)
+        ax = axes[i, j]
+        volt = res.task.voltage
+        _curve_axes(ax, res, res.task.swept, "force", "-", colours[volt], f"{names[volt]} {volt:.0f} V")
+        _mark_max(ax, res, res.task.swept, "force", colours[volt], "{:.3f} N")
+    for i, setting in enumerate(settings):
+        for j, unit in enumerate(units):
+            axes[i, j].set_title(f"DE{unit + 1} measured, neighbours {neighbour_label(setting)}", fontsize=9)
+            axes[i, j].grid(alpha=0.3)
+            axes[i, j].legend(fontsize=7, loc="lower right")
+        axes[i, 0].set_ylabel("force [N]")
     for ax in axes[-1]:
-        ax.set_xlabel("swept displacement [mm]")
-    axes[0, 0].legend(fontsize=7)
+        ax.set_xlabel("displacement [mm]")
+    fig.suptitle(title)
     fig.savefig(path, dpi=100)
     return path
 

@@ -1,4 +1,4 @@
-"""The paper's studies (section 6): coupled curves, coupling indices and parameter sweeps.
+"""The paper's studies: figure 12-16 curves, coupling indices (section 6) and parameter sweeps.
 
 Everything here is a pure function of an :class:`ArrayConfig`: a study is a list of
 independent :class:`CurveTask` s, each solved from the flat state by a fresh twin
@@ -9,12 +9,16 @@ Coupling indices (eqs. 13, 15, 16), for the measured unit m (the central one) an
 neighbour on the left:
 
 * ``eta_F,LV = 100 (Fmax_default - Fmax_perturbed) / Fmax_default`` with unit m swept
-  to 0.75 D at 0 V; *default*: every other unit free, *perturbed*: every other unit
-  driven, pre-deflected to 0.4 D.
+  to 0.75 D at 0 V; *default*: the other units not deflected (free, or held at 0 m
+  with ``undeflected=0.0``), *perturbed*: every other unit driven, pre-deflected to 0.4 D.
 * ``eta_F,HV``: the same with ``V = Ec t0 / lp^2`` (eq. 14, Ec = 80 V/um) on unit m.
 * ``eta_C = 100 dCmax(neighbour swept) / dCmax(m swept)``: capacitance change of unit
-  m when its neighbour, resp. unit m itself, is swept to 0.75 D at 0 V, others free.
-  ``dCmax`` is the largest-magnitude change along the curve, with its sign.
+  m when its neighbour, resp. unit m itself, is swept to 0.75 D at 0 V, others not
+  deflected.  ``dCmax`` is the largest-magnitude change along the curve, with its sign.
+
+Figures 12-16 (section 5) are the experiments' curves: each of the neighbour and the
+central unit swept to 15 mm with the other units free or pre-deflected by 4, 6 or 8 mm,
+at 0 V and at the experiments' HV (``ArrayConfig.experimental_hv``).
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ AIR_BREAKDOWN_FIELD = 3e6
 CRITICAL_FIELD = 80e6
 #: Sweep stroke and neighbour pre-deflection, as fractions of D (section 6.1).
 STROKE, PRE_DEFLECTION = 0.75, 0.4
+#: The experiments' neighbour pre-deflections (section 5.1: 4, 6 and 8 mm with D = 20 mm), fractions of D.
+PRE_LOADS = (0.2, 0.3, 0.4)
 
 
 @dataclass(frozen=True)
@@ -81,8 +87,15 @@ class CurveResult:
         What was solved.
     displacement : ndarray, shape (k,)
         Swept unit's displacement [m].
-    force, capacitance, delta_capacitance : ndarray, shape (k, n)
-        Per point and unit [N], [F], [F] (change from the flat pre-stretched state).
+    force, capacitance : ndarray, shape (k, n)
+        Per point and unit [N], [F].
+    delta_capacitance : ndarray, shape (k, n)
+        Capacitance change from the first point, the start of the test (after the
+        neighbours' pre-deflection and with the voltage on) [F]: the paper's
+        "capacitance deviation from the initial value".  For a test that starts from
+        the flat state at 0 V this is the change from the flat pre-stretched state.
+    peak_field : ndarray, shape (k, n)
+        Largest true electric field on each electrode [V/m].
     min_principal_stress : ndarray, shape (k,)
         Smallest principal Cauchy stress outside held disks [Pa].
     wrinkled, field_exceeded : ndarray of bool, shape (k,)
@@ -97,6 +110,7 @@ class CurveResult:
     force: np.ndarray
     capacitance: np.ndarray
     delta_capacitance: np.ndarray
+    peak_field: np.ndarray
     min_principal_stress: np.ndarray
     wrinkled: np.ndarray
     field_exceeded: np.ndarray
@@ -105,7 +119,7 @@ class CurveResult:
 
 #: :class:`CurveResult` fields stacked point by point from the
 #: :class:`~dea_array_twin.model.twin.TwinResult` fields of the same name.
-_STACKED = ("force", "capacitance", "delta_capacitance", "min_principal_stress", "wrinkled", "field_exceeded")
+_STACKED = ("force", "capacitance", "peak_field", "min_principal_stress", "wrinkled", "field_exceeded")
 
 
 def run_curve(task: CurveTask, on_point: Callable[[float, TwinResult], None] | None = None) -> CurveResult:
@@ -135,7 +149,7 @@ def run_curve(task: CurveTask, on_point: Callable[[float, TwinResult], None] | N
             on_point(float(d), rows[-1])
     stacked = {name: np.array([getattr(r, name) for r in rows]) for name in _STACKED}
     return CurveResult(task=task, displacement=displacement, stable=np.array([r.stable is not False for r in rows]),
-                       **stacked)
+                       delta_capacitance=stacked["capacitance"] - stacked["capacitance"][0], **stacked)
 
 
 
@@ -165,14 +179,25 @@ def measured_units(cfg: ArrayConfig) -> tuple[int, int]:
 COUPLING_CASES = ("lv_default", "lv_perturbed", "hv_default", "hv_perturbed", "c_neighbour")
 
 
-def coupling_tasks(cfg: ArrayConfig, steps: int = 15, key: tuple = ()) -> list[CurveTask]:
-    """The five curves behind eqs. 13, 15 and 16 for ``cfg`` (keys ``key + (case,)``)."""
+def coupling_tasks(cfg: ArrayConfig, steps: int = 15, key: tuple = (), undeflected: float | None = None,
+                   hv: float | None = None) -> list[CurveTask]:
+    """The five curves behind eqs. 13, 15 and 16 for ``cfg`` (keys ``key + (case,)``).
+
+    Parameters
+    ----------
+    undeflected : float or None
+        The paper's "neighbours not deflected": ``None`` (default) free units, or
+        indenters held at this displacement [m] (``0.0``: held flat).
+    hv : float, optional
+        The HV on the measured unit [V]; default eq. 14, ``cfg.hv_voltage(80 V/um)``.
+    """
     centre, neighbour = measured_units(cfg)
     diameter = cfg.scaled("electrode_diameter")
-    stroke, pre, hv = STROKE * diameter, PRE_DEFLECTION * diameter, cfg.hv_voltage(CRITICAL_FIELD)
-    spec = {"lv_default": (centre, None, 0.0), "lv_perturbed": (centre, pre, 0.0),
-            "hv_default": (centre, None, hv), "hv_perturbed": (centre, pre, hv),
-            "c_neighbour": (neighbour, None, 0.0)}
+    stroke, pre = STROKE * diameter, PRE_DEFLECTION * diameter
+    hv = cfg.hv_voltage(CRITICAL_FIELD) if hv is None else hv
+    spec = {"lv_default": (centre, undeflected, 0.0), "lv_perturbed": (centre, pre, 0.0),
+            "hv_default": (centre, undeflected, hv), "hv_perturbed": (centre, pre, hv),
+            "c_neighbour": (neighbour, undeflected, 0.0)}
     return [CurveTask(cfg, swept, nb, volt, stroke, steps, key + (case,))
             for case, (swept, nb, volt) in spec.items()]
 
@@ -191,7 +216,7 @@ class CouplingIndices:
         Signed largest-magnitude capacitance change of the measured unit when it,
         resp. its neighbour, is swept [F].
     hv_voltage : float
-        Eq. 14 voltage [V].
+        The HV on the measured unit [V] (eq. 14 unless the tasks chose another).
     wrinkled, field_exceeded, unstable : tuple of str
         The cases in which some point was flagged.
     """
@@ -208,8 +233,8 @@ class CouplingIndices:
     unstable: tuple
 
 
-def _extreme(values: np.ndarray) -> float:
-    """The entry of largest magnitude, with its sign."""
+def largest(values: np.ndarray) -> float:
+    """The entry of largest magnitude, with its sign (the paper's "maximum" of a dC curve)."""
     return float(values[np.argmax(np.abs(values))])
 
 
@@ -223,8 +248,8 @@ def coupling_indices(curves: dict[str, CurveResult]) -> CouplingIndices:
         default, perturbed = f_max[f"{kind}_default"], f_max[f"{kind}_perturbed"]
         return 100.0 * (default - perturbed) / default
 
-    dc_default = _extreme(curves["lv_default"].delta_capacitance[:, centre])
-    dc_perturbed = _extreme(curves["c_neighbour"].delta_capacitance[:, centre])
+    dc_default = largest(curves["lv_default"].delta_capacitance[:, centre])
+    dc_perturbed = largest(curves["c_neighbour"].delta_capacitance[:, centre])
     return CouplingIndices(
         eta_f_lv=eta("lv"), eta_f_hv=eta("hv"), eta_c=100.0 * dc_perturbed / dc_default, f_max=f_max,
         dc_max_default=dc_default, dc_max_perturbed=dc_perturbed,
@@ -328,28 +353,56 @@ def shape_tasks(base: ArrayConfig, steps: int = 15) -> list[CurveTask]:
     return tasks
 
 
+def figure_units(cfg: ArrayConfig) -> tuple[int, ...]:
+    """The units of figures 12-16, 0-based: the eta_C neighbour and the central unit, in order.
+
+    For the paper's 1-by-3 row these are DE1 and DE2 (DE3 mirrors DE1); a single-unit
+    layout has just its unit.
+    """
+    if cfg.n_units == 1:
+        return (0,)
+    return tuple(sorted(measured_units(cfg)))
+
+
 def curves_tasks(base: ArrayConfig, steps: int = 15, stroke: float | None = None,
-                 neighbours: Sequence[float | str | None] = (None, "pre"),
+                 neighbours: Sequence[float | None] | None = None,
                  voltages: Sequence[float] | None = None) -> list[CurveTask]:
-    """Figures 12-16: every unit swept in turn, for each neighbour setting and voltage.
+    """Figures 12-16 at ``base``'s pre-stretch: each :func:`figure_units` unit swept in turn.
+
+    Keys are ``("curves", lp, "unit k, neighbours ..., V")``.
 
     Parameters
     ----------
     stroke : float, optional
-        Final displacement [m]; default 0.75 D.
-    neighbours : sequence
-        ``None`` (free), ``"pre"`` (driven at 0.4 D) or a displacement [m] per setting.
+        Final displacement [m]; default 0.75 D (the experiments' 15 mm).
+    neighbours : sequence, optional
+        Per setting, ``None`` (the other units free) or their pre-deflection [m]
+        (``0.0``: held flat).  Default: free, then 0.2, 0.3 and 0.4 D (the paper's
+        "0 mm" read as not deflected, then 4, 6 and 8 mm).
     voltages : sequence of float, optional
-        Voltages on the swept unit [V]; default 0 and the eq. 14 voltage.
+        Voltages on the swept unit [V]; default 0 and ``base.experimental_hv()``.
+
+    Raises
+    ------
+    ConfigError
+        Default voltages and no experimental HV for ``base.prestretch``.
     """
     diameter = base.scaled("electrode_diameter")
     stroke = STROKE * diameter if stroke is None else stroke
-    voltages = [0.0, base.hv_voltage(CRITICAL_FIELD)] if voltages is None else voltages
-    settings = [PRE_DEFLECTION * diameter if nb == "pre" else nb for nb in neighbours]
+    voltages = [0.0, base.experimental_hv()] if voltages is None else voltages
+    settings = [None, *(f * diameter for f in PRE_LOADS)] if neighbours is None else list(neighbours)
     if base.n_units == 1:  # no neighbours to set
         settings = [None]
-    return [CurveTask(base, k, nb, v, stroke, steps, ("curves", "free" if nb is None else nb, f"{v:g} V"))
-            for k in range(base.n_units) for nb in settings for v in voltages]
+    return [CurveTask(base, k, nb, v, stroke, steps,
+                      ("curves", base.prestretch, f"unit {k + 1}, neighbours {neighbour_label(nb)}, {v:g} V"))
+            for k in figure_units(base) for nb in settings for v in voltages]
+
+
+def neighbour_label(setting: float | None) -> str:
+    """``"free"`` or the pre-deflection in mm (``"held at 0 mm"`` for 0), for labels and tables."""
+    if setting is None:
+        return "free"
+    return "held at 0 mm" if setting == 0 else f"at {setting * 1e3:g} mm"
 
 
 def geometry_row(cfg: ArrayConfig) -> dict[str, float]:

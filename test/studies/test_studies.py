@@ -63,7 +63,8 @@ def test_indices_follow_eqs_13_15_16_from_the_curve_maxima():
         dc[:, 1] = dc2
         flags = np.zeros(k, dtype=bool)
         task = CurveTask(cfg, swept, None, 100.0 if case.startswith("hv") else 0.0, 0.015, k - 1, (case,))
-        return CurveResult(task, np.linspace(0, 0.015, k), force, dc, dc, np.ones(k), flags, flags, ~flags)
+        return CurveResult(task, np.linspace(0, 0.015, k), force, dc, dc, np.zeros((k, 3)), np.ones(k), flags, flags,
+                           ~flags)
 
     curves = {"lv_default": fake("lv_default", 1, [0, 0.5, 1.0], [0, 2e-12, 8e-12]),
               "lv_perturbed": fake("lv_perturbed", 1, [-0.1, 0.4, 0.9], [0, 0, 0]),
@@ -248,13 +249,59 @@ def test_sweep_and_curves_studies_run_on_two_workers(tmp_path, coarse_yaml):
         for key in ("eta_f_lv", "eta_f_hv", "eta_c"):
             assert float(row[key]) == pytest.approx(ref[key], abs=1e-12)
     assert (out / "sweep_spacing.png").stat().st_size > 10_000
-    assert _study(["curves", str(coarse_yaml), "--neighbours", "free", "--voltages", "0", "--steps", "2",
-                   "--out", str(out)]) == 0
-    with open(out / "curves.csv") as f:
-        rows = list(csv.DictReader(f))
-    assert len(rows) == 3 * 3 and {r["swept_unit"] for r in rows} == {"1", "2", "3"}
+    assert _study(["curves", str(coarse_yaml), "--prestretch", "1.1", "--neighbours", "free", "--voltages", "0",
+                   "--steps", "2", "--workers", "2", "--out", str(out)]) == 0
+    with open(out / "force_lp1.10.csv") as f:
+        rows = list(csv.DictReader(line for line in f if not line.startswith("#")))
+    assert len(rows) == 2 * 3 and {r["swept_unit"] for r in rows} == {"1", "2"}
     assert {r["voltage_V"] for r in rows} == {"0.0"} and {r["neighbours_m"] for r in rows} == {"free"}
-    assert (out / "curves.png").exists()
+    assert (out / "force_lp1.10.png").exists() and (out / "capacitance_lp1.10.png").exists()
+
+
+def test_default_curves_are_figures_12_to_16_at_the_experiments_voltages_and_pre_deflections(tmp_path, coarse_yaml):
+    """Section 5.1: DE1 and DE2 swept to 15 mm at lp 1.10 (2730 V) and 1.20 (2300 V), neighbours free
+    (the paper's "0 mm") or pre-deflected by 4, 6, 8 mm; capacitance at 0 V with free neighbours."""
+    tasks = study.curves_tasks(_base())
+    assert {(t.swept, t.neighbours, t.voltage, t.stroke) for t in tasks} == {
+        (k, nb, v, 0.015) for k in (0, 1) for nb in (None, 0.004, 0.006, 0.008) for v in (0.0, 2730.0)}
+    out = tmp_path / "out"
+    assert _study(["curves", str(coarse_yaml), "--steps", "1", "--out", str(out)]) == 0
+    for lp, hv in (("1.10", 2730.0), ("1.20", 2300.0)):
+        force = _index_table(out / f"force_lp{lp}.csv")
+        assert {(r["swept_unit"], r["neighbours_m"], float(r["voltage_V"])) for r in force} == {
+            (k, nb, v) for k in ("1", "2") for nb in ("free", "0.004", "0.006", "0.008") for v in (0.0, hv)}
+        cap = _index_table(out / f"capacitance_lp{lp}.csv")
+        assert {(r["swept_unit"], r["neighbours_m"], r["voltage_V"]) for r in cap} == {
+            ("1", "free", "0.0"), ("2", "free", "0.0")}
+        for name in (f"force_lp{lp}.png", f"capacitance_lp{lp}.png"):
+            assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = (out / "summary.md").read_text()
+    assert "## curves at lp = 1.10 (paper figures 12 and 15)" in summary and "DE2, 2300 V" in summary
+    assert "experiments' voltage" in summary
+
+
+def test_the_eq14_voltage_stays_available_and_a_prestretch_without_experimental_hv_is_refused(
+        tmp_path, coarse_yaml, capsys):
+    assert _study(["curves", str(coarse_yaml), "--prestretch", "1.2", "--hv", "eq14", "--neighbours", "free",
+                   "--steps", "1", "--out", str(tmp_path)]) == 0
+    written = {float(r["voltage_V"]) for r in _index_table(tmp_path / "force_lp1.20.csv")}
+    assert sorted(written) == pytest.approx([0.0, 80e6 * 50e-6 / 1.2**2])
+    assert _study(["curves", "--prestretch", "1.3", "--out", str(tmp_path)]) == 2
+    assert "no experimental HV for prestretch 1.3" in capsys.readouterr().err
+
+
+def test_capacitance_change_starts_at_zero_at_the_first_point_of_every_test():
+    """dC is the paper's "deviation from the initial value": from the state after the neighbours'
+    pre-deflection with the voltage on, not from the flat 0 V membrane."""
+    cfg = _base()
+    flat = ArrayTwin(cfg).solve([0, 0, 0], 0.0).capacitance
+    for nb, volt in ((None, 0.0), (0.008, 0.0), (None, 2730.0), (0.008, 2730.0)):
+        res = run_curve(CurveTask(cfg, 1, nb, volt, 0.015, 2))
+        np.testing.assert_array_equal(res.delta_capacitance[0], 0.0)
+        np.testing.assert_allclose(res.delta_capacitance, res.capacitance - res.capacitance[0], rtol=0, atol=0)
+        offset = (res.capacitance[0] - flat)[1] * 1e12  # the start of the test against the flat state [pF]
+        # Free neighbours at 0 V start flat; pre-deflection stretches unit 2's electrode, HV expands it.
+        assert (abs(offset) < 1e-6) if (nb, volt) == (None, 0.0) else (offset > 1.0), (nb, volt, offset)
 
 
 def _index_table(path) -> list[dict]:
@@ -313,8 +360,8 @@ def test_a_curve_without_equilibrium_is_recorded_and_the_study_exits_1(tmp_path,
     row = index_rows([try_curve(t) for t in tasks])[0]
     assert math.isnan(row["eta_f_hv"]) and math.isnan(row["eta_c"])
     assert row["error"].startswith("hv_default: Newton failed to converge")
-    assert _study(["curves", str(coarse_yaml), "--neighbours", "free", "--voltages", "10000", "--steps", "1",
-                   "--to", "0.005", "--out", str(tmp_path)]) == 1
+    assert _study(["curves", str(coarse_yaml), "--prestretch", "1.1", "--neighbours", "free", "--voltages", "10000",
+                   "--steps", "1", "--to", "0.005", "--out", str(tmp_path)]) == 1
     assert "some curves failed to solve" in capsys.readouterr().err
-    with open(tmp_path / "curves.csv") as f:
-        assert all("failed to converge" in r["error"] for r in csv.DictReader(f))
+    assert all("failed to converge" in r["error"] for r in _index_table(tmp_path / "force_lp1.10.csv"))
+    assert "- FAILED: unit 2, neighbours free, 10000 V: Newton failed" in (tmp_path / "summary.md").read_text()
