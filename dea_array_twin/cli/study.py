@@ -69,7 +69,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     where.add_argument("--scheduler", metavar="ADDRESS",
                        help="Dask distributed scheduler, e.g. tcp://10.0.0.5:8786 (workers need this package)")
     config_help = "config YAML (default: the paper's 1-by-3 array, lp = 1.10)"
-    coupling = kinds.add_parser("coupling", parents=[common],
+    indices = argparse.ArgumentParser(add_help=False)
+    indices.add_argument("--undeflected", choices=("free", "held"), default="free",
+                         help="the paper's 'neighbours not deflected': free units (default) or indenters held at 0 m")
+    coupling = kinds.add_parser("coupling", parents=[common, indices],
                                 help="coupling indices eta_F,LV, eta_F,HV, eta_C (eqs. 13-16)")
     coupling.add_argument("config", nargs="?", help=config_help)
     curves = kinds.add_parser("curves", parents=[common],
@@ -88,7 +91,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default: free,0.2D,0.3D,0.4D = free,0.004,0.006,0.008); the first setting is "
                              "also that of the capacitance figure")
     curves.add_argument("--to", type=float, help="final displacement [m] (default 0.75 D = 15 mm)")
-    sweep = kinds.add_parser("sweep", parents=[common], help="a parameter study of section 6")
+    sweep = kinds.add_parser("sweep", parents=[common, indices], help="a parameter study of section 6")
     sweep.add_argument("name", choices=[*study.SWEEPS, "shape", "all"])
     sweep.add_argument("config", nargs="?", help=config_help)
     sweep.add_argument("--values", type=float_list(),
@@ -178,13 +181,16 @@ def _coupling_or_sweep(name: str, base: ArrayConfig, args: argparse.Namespace, o
     """Run the coupling of ``base`` (``name == "coupling"``) or one index sweep; True if all solved."""
     from ..studies.plots import plot_coupling_curves, plot_sweep
 
+    undeflected = None if args.undeflected == "free" else 0.0
     if name == "coupling":
-        tasks = study.coupling_tasks(base, args.steps)
+        tasks = study.coupling_tasks(base, args.steps, undeflected=undeflected)
         stem, notes = "coupling", ["coupling indices of the configuration (eqs. 13, 15, 16)"]
     else:
         sweep = study.SWEEPS[name]
-        tasks = study.sweep_tasks(sweep, base, args.values if args.study == "sweep" else None, args.steps)
+        tasks = study.sweep_tasks(sweep, base, args.values if args.study == "sweep" else None, args.steps,
+                                  undeflected)
         stem, notes = f"sweep_{name}", [f"parameter: {sweep.parameter}", f"geometry: {sweep.geometry}"]
+    notes.append(f"neighbours not deflected = {study.neighbour_label(undeflected)} (--undeflected)")
     notes.append("indices in %; F in N, C in F, lengths in m; flags list the curves where a point was flagged")
     results = _run(tasks, args, name)
     rows = study.index_rows(results)
@@ -292,11 +298,14 @@ def curves_summary(cfg: ArrayConfig, results: Sequence[CurveResult | CurveFailur
 
 
 def _hv_text(args: argparse.Namespace) -> str:
-    """Which HV the study applies, for the summary."""
-    if args.study != "curves" or args.hv == "eq14":
-        return "HV = Ec t0 / lp^2 with Ec = 80 V/um (eq. 14)" + (" unless --voltages" if args.study == "curves" else "")
+    """Which HV (and, for the indices, which reading of "not deflected") the study applies, for the summary."""
+    if args.study != "curves":
+        return ("HV = Ec t0 / lp^2 with Ec = 80 V/um (eq. 14); neighbours not deflected = "
+                + ("free units" if args.undeflected == "free" else "indenters held at 0 mm"))
     if args.voltages is not None:
         return f"voltages {', '.join(f'{v:g}' for v in args.voltages)} V (--voltages)"
+    if args.hv == "eq14":
+        return "HV = Ec t0 / lp^2 with Ec = 80 V/um (eq. 14)"
     return "HV = the experiments' voltage at each pre-stretch (config experimental_hv_*, section 5.1)"
 
 

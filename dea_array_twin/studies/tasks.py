@@ -321,8 +321,10 @@ SHAPE_GEOMETRY = ("circle vs square of equal area: side s = sqrt(pi) D / 2 = 0.8
 
 
 def sweep_tasks(sweep: Sweep, base: ArrayConfig, values: Sequence[float] | None = None,
-                steps: int = 15) -> list[CurveTask]:
+                steps: int = 15, undeflected: float | None = None) -> list[CurveTask]:
     """The coupling curves of every value of ``sweep`` (keys ``(sweep.name, value, case)``).
+
+    ``undeflected`` is passed to :func:`coupling_tasks` (None: free neighbours).
 
     Raises
     ------
@@ -337,7 +339,7 @@ def sweep_tasks(sweep: Sweep, base: ArrayConfig, values: Sequence[float] | None 
             cfg = sweep.apply(base, float(value))
         except ConfigError as exc:
             raise ConfigError(f"{sweep.name} = {value}: {exc}") from None
-        tasks += coupling_tasks(cfg, steps, (sweep.name, float(value)))
+        tasks += coupling_tasks(cfg, steps, (sweep.name, float(value)), undeflected)
     return tasks
 
 
