@@ -26,9 +26,12 @@ mcap`` has the command topics only):
 Offline replay (:func:`replay_commands`) is sample and hold: displacement and voltage
 start at zero, each command message in log-time order replaces one of them and triggers
 one solve.  Commands the twin node would reject (:func:`~dea_array_twin.model.twin.command_error`: wrong
-length, NaN/inf, beyond ``max_displacement``, negative or breakdown voltage) are
-skipped and counted.  The first solver failure stops the replay (exit code 1); what
-was computed up to it is still written.  Outputs, one entry per solve:
+length, NaN/inf, beyond ``max_displacement``, negative voltage, or a voltage at which the
+flat membrane's field reaches ``breakdown_field``) are skipped and counted.  A command
+without equilibrium is handled as the node handles it: the twin keeps its last state,
+the command stays held, the failure is reported (the first few by time, then a count)
+and the replay goes on with the next command (exit code 1 at the end).  Outputs, one
+entry per successful solve:
 
 * ``OUT.mcap``: ``/command/displacement`` or ``/command/voltage`` (the accepted command
   that triggered the solve), ``/force``, ``/capacitance`` (Float64MultiArray) and
@@ -48,8 +51,9 @@ lags its commands by up to one tick, which costs a little FIT on fast command ch
 
 A file without a summary (the recorder was killed) is refused (see :mod:`~dea_array_twin.bag.reader`).
 
-Exit codes: 0 ok, 1 solver failure, 2 bad input (missing or non-MCAP file, truncated
-bag, no command topics, bad config), 130 interrupted (``--realtime``).
+Exit codes: 0 ok, 1 some command had no equilibrium (the rest is replayed), 2 bad input
+(missing or non-MCAP file, truncated bag, no command topics, bad config), 130
+interrupted (``--realtime``).
 """
 
 from __future__ import annotations
@@ -106,8 +110,9 @@ class ReplayRun:
         Rejected commands per kind.
     state_warnings : Counter
         Solves whose result carries a warning (wrinkling, field...), per warning kind.
-    error : str or None
-        Why the replay stopped early (solver failure), else None.
+    failures : list of str
+        One line per command without equilibrium (time, command, why); the twin kept its
+        last state there, as the node does.
     """
 
     times_ns: np.ndarray
@@ -121,7 +126,7 @@ class ReplayRun:
     initial_capacitance: np.ndarray
     skipped: Counter = field(default_factory=Counter)
     state_warnings: Counter = field(default_factory=Counter)
-    error: str | None = None
+    failures: list[str] = field(default_factory=list)
 
     @property
     def n_solves(self) -> int:
@@ -155,7 +160,7 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
     Returns
     -------
     ReplayRun
-        What was computed; ``error`` is set if a solve failed (the run stops there).
+        What was computed; ``failures`` lists the commands without equilibrium (the run went on).
     """
     from tqdm import tqdm
 
@@ -167,7 +172,7 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
     rows: dict[str, list] = {k: [] for k in ("t", "kind", "d", "v", "f", "c", "z")}
     skipped: Counter = Counter()
     state_warnings: Counter = Counter()
-    error = None
+    failures: list[str] = []
     bar = tqdm(total=total, desc="replay", unit="cmd", file=sys.stderr, disable=None)
     try:
         for log_time, kind, values in commands:
@@ -184,9 +189,12 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
             held[kind] = np.asarray(values, dtype=float)
             try:
                 res = twin.solve(held["displacement"], held["voltage"], modes, check_stability=False)
-            except (ConvergenceError, ValueError) as exc:
-                error = f"solve failed at t = {t_s:.6f} s ({kind} command {values}): {exc}"
-                break
+            except (ConvergenceError, ValueError) as exc:  # the node keeps its last state and goes on
+                failures.append(f"t = {t_s:.6f} s ({kind} command {values}): {exc}")
+                if len(failures) <= _MAX_LISTED_WARNINGS:
+                    bar.write(f"dea-twin replay: warning: solve failed, keeping the last state: {failures[-1]}",
+                              file=sys.stderr)
+                continue
             state_warnings.update(_FLAG_TEXT[flag] for flag in res.flags)
             rows["t"].append(int(log_time))
             rows["kind"].append(kind)
@@ -205,7 +213,7 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
                      voltage=stack("v"), force=stack("f"), capacitance=stack("c"), centre_deflection=stack("z"),
                      initial_force=np.asarray(first.force, dtype=float),
                      initial_capacitance=np.asarray(first.capacitance, dtype=float),
-                     skipped=skipped, state_warnings=state_warnings, error=error)
+                     skipped=skipped, state_warnings=state_warnings, failures=failures)
 
 
 def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.ndarray]],
@@ -358,7 +366,7 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
         _log(f"warning: {count} replayed state(s) flagged: {text}")
     for kind, count in bad_outputs.items():
         _log(f"warning: {count} recorded {kind} message(s) of the wrong length or not finite: not compared")
-    if run.n_solves == 0 and run.error is None:
+    if run.n_solves == 0 and not run.failures:
         raise BagError(f"no valid command in {bag.path} ({sum(run.skipped.values())} rejected); "
                        f"does the config match the recording? (--config)")
     metadata = {CONFIG_RECORD: metadata_from_config(cfg, modes),
@@ -368,10 +376,9 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     write_csv(csv_path, run, origin)
     print(f"replayed {run.n_solves} command(s) in {elapsed:.2f} s "
           f"({sum(run.skipped.values())} skipped): wrote {mcap_path} and {csv_path}")
-    if run.error is not None:
-        print(f"dea-twin replay: solver failed, replay stopped: {run.error}; outputs hold the states before it",
-              file=sys.stderr)
-        return 1
+    if run.failures:
+        _log(f"warning: {len(run.failures)} command(s) without equilibrium (the first: {run.failures[0]}); "
+             "the twin kept its last state at each and went on, as the node does")
     data = {k: (np.array(t, dtype=np.int64), np.array(v, dtype=float).reshape(-1, n))
             for k, (t, v) in recorded.items() if t}
     if data:
@@ -387,4 +394,4 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
              "it (three update periods of the recording node; --fit-lag to change)")
         fits = compare_outputs(run, data, int(round(fit_lag * 1e9)))
         print(_fit_table(fits, outputs, {k: len(v[0]) for k, v in data.items()}))
-    return 0
+    return 1 if run.failures else 0

@@ -16,13 +16,14 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from ..model.config import ConfigError
 from .node import TwinNode
+from .spin import init_ros, shutdown_signals
 from .wave_controller import WaveController
 
 
 def _row(node: TwinNode, elapsed: float) -> str:
     res = node.result
     cells = [f"{elapsed:6.1f}"]
-    for k in range(node.twin.n_units):
+    for k in range(node.config.n_units):
         cells.append(f"{res.centre_deflection[k] * 1e3:6.2f} {res.force[k]:6.3f} "
                      f"{res.delta_capacitance[k] * 1e12:7.2f}")
     return " | ".join(cells)
@@ -30,31 +31,35 @@ def _row(node: TwinNode, elapsed: float) -> str:
 
 def run_demo(node_args: Sequence[str], duration: float) -> int:
     """Run twin + wave controller for ``duration`` s (0 = until Ctrl-C); return the exit code."""
-    rclpy.init(args=list(node_args))
     nodes = []
-    try:
-        twin = TwinNode()
-        nodes.append(twin)
-        wave = WaveController()
-        nodes.append(wave)
-        executor = SingleThreadedExecutor()
-        for node in nodes:
-            executor.add_node(node)
-        n = twin.twin.n_units
-        print("t [s]  | " + " | ".join(f"unit {k + 1}: d [mm] F [N] dC [pF]" for k in range(n)), flush=True)
-        start = last = time.monotonic()
-        while rclpy.ok() and (duration <= 0 or time.monotonic() - start < duration):
-            executor.spin_once(timeout_sec=0.05)
-            if time.monotonic() - last >= 0.5 and twin.result is not None:
-                last = time.monotonic()
-                print(_row(twin, last - start), flush=True)
-    except ConfigError as exc:
-        print(f"dea-twin: error: {exc}", file=sys.stderr)
-        return 2
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    with shutdown_signals() as install_again:
+        try:
+            init_ros(list(node_args), "dea-twin demo")
+        except SystemExit as exc:
+            return int(exc.code)
+        try:
+            nodes.append(TwinNode())
+            nodes.append(WaveController())
+            install_again()
+            executor = SingleThreadedExecutor()
+            for node in nodes:
+                executor.add_node(node)
+            twin = nodes[0]
+            n = twin.config.n_units
+            print("t [s]  | " + " | ".join(f"unit {k + 1}: d [mm] F [N] dC [pF]" for k in range(n)), flush=True)
+            start = last = time.monotonic()
+            while rclpy.ok() and (duration <= 0 or time.monotonic() - start < duration):
+                executor.spin_once(timeout_sec=0.05)
+                if time.monotonic() - last >= 0.5 and twin.result is not None:
+                    last = time.monotonic()
+                    print(_row(twin, last - start), flush=True)
+        except ConfigError as exc:
+            print(f"dea-twin: error: {exc}", file=sys.stderr)
+            return 2
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        finally:
+            for node in nodes:
+                node.destroy_node()
+            rclpy.try_shutdown()
     return 0

@@ -8,11 +8,16 @@ Interface (relative names, so ``-r __ns:=/left_array`` runs several arrays; SI u
 * ``force``, ``capacitance`` (std_msgs/Float64MultiArray, dim "unit"), ``unit_states``
   (sensor_msgs/JointState: position = centre deflection, effort = force), published
   reliable/volatile after each update; ``membrane`` (visualization_msgs/Marker
-  TRIANGLE_LIST) at ``marker_rate``; ``/diagnostics`` at 1 Hz.
+  TRIANGLE_LIST) at ``marker_rate``; ``/diagnostics`` at 1 Hz and when a command
+  publisher connects or leaves.
 * service ``reset`` (std_srvs/Trigger): all units to 0 m, 0 V, flat membrane.
 
-The node only translates messages: validation rules live in :func:`~dea_array_twin.model.twin.command_error`,
-physics in :class:`~dea_array_twin.model.twin.ArrayTwin`.
+The executor only moves messages: callbacks check a command
+(:func:`~dea_array_twin.model.twin.command_error`) and hand it to the solver thread
+(:class:`~.updater.TwinUpdater`), which owns the
+:class:`~dea_array_twin.model.twin.ArrayTwin`, solves on the latest command, gives
+each solve a time budget (``solve_budget``) and publishes when a solve finishes.  So
+commands, ``reset``, parameters, diagnostics and the recorder never wait for a solve.
 """
 
 from __future__ import annotations
@@ -25,8 +30,11 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
@@ -34,14 +42,15 @@ from visualization_msgs.msg import Marker
 
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
-from ..model.membrane import DRIVEN, check_modes
-from ..model.solver import ConvergenceError
+from ..model.membrane import DRIVEN, FREE, check_modes
 from ..model.twin import ArrayTwin, TwinResult, command_error
-from .params import RUNTIME_FIELDS, config_descriptor, declare_number, declared_default
+from .params import RUNTIME_FIELDS, coerce_doubles, config_descriptor, declare_number, declare_typed
 from .spin import spin_node
+from .updater import TwinUpdater
 
 COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+COMMAND_KINDS = ("displacement", "voltage")
 
 
 def unit_array(values: Sequence[float]) -> Float64MultiArray:
@@ -53,65 +62,84 @@ def unit_array(values: Sequence[float]) -> Float64MultiArray:
 
 
 class TwinNode(Node):
-    """ROS 2 node wrapping an :class:`ArrayTwin`."""
+    """ROS 2 node wrapping an :class:`ArrayTwin` that a solver thread drives."""
 
     def __init__(self, **kwargs):
         super().__init__("dea_array_twin", **kwargs)
         cfg = self._declare_config()
-        self.twin = ArrayTwin(cfg)
+        twin = ArrayTwin(cfg)
+        #: The mesh and operators (read-only; the marker and the log use them).  The twin's
+        #: state belongs to the solver thread.
+        self.model = twin.model
+        #: The config as the executor sees it: command checks and run-time parameters.
+        self.config = cfg
         n = cfg.n_units
         self.update_rate = declare_number(self, "update_rate", 100.0, "updates per second [Hz]; 0 = one per command")
         self.marker_rate = declare_number(self, "marker_rate", 5.0, "membrane marker rate [Hz]; 0 = off")
         self.frame_id = self.declare_parameter(
             "frame_id", "dea_array", ParameterDescriptor(description="frame of unit_states and membrane",
                                                          read_only=True)).value
-        self.stability_period = declare_number(self,
+        stability_period = declare_number(self,
             "stability_check_period", 1.0,
             "seconds between stability checks of the equilibrium (a tangent factorisation, ~7 ms on the "
             "default mesh); 0 = every update")
-        modes = self.declare_parameter(
+        self.solve_budget = declare_number(
+            self, "solve_budget", 5.0 / self.update_rate if self.update_rate > 0 else 0.5,
+            "seconds a solve may take while a newer command waits; past it the solve is abandoned for the newest "
+            "command and the last good state kept; doubled after each consecutive abandonment; 0 = no limit "
+            "(default: 5 update periods, 0.5 s at update_rate 0)")
+        modes = self.declare_parameter(  # dynamically typed: _on_set_parameters checks it and names it
             "unit_modes", [DRIVEN] * n,
             ParameterDescriptor(description="per unit 'driven' (indenter follows command/displacement) or "
-                                            "'free' (no indenter)")).value
-        self._check_modes(modes)
-        self.modes = tuple(modes)
+                                            "'free' (no indenter); default all driven", dynamic_typing=True)).value
+        self.modes = self._check_modes(modes)
+        self.add_pre_set_parameters_callback(lambda params: coerce_doubles(params, RUNTIME_FIELDS))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.displacement = np.zeros(n)
-        self.voltage = np.zeros(n)
-        self._dirty = True
-        self.counters = {"rejected_displacement": 0, "rejected_voltage": 0, "failed_solves": 0,
-                         "updates": 0, "skipped_ticks": 0}
+        self.counters = {"rejected_displacement": 0, "rejected_voltage": 0, "displacement_on_free_unit": 0}
         self._last_warn: dict[str, float] = {}
-        self.last_error = ""
-        self.result: TwinResult | None = None
-        self._last_stability_time = -math.inf
-        self._last_tick = None
-        self._update_times: list[float] = []
+        self.recorder = None
+        self.recording_error = ""
+        self._duplicate = ""
 
         self.pub_force = self.create_publisher(Float64MultiArray, "force", OUTPUT_QOS)
         self.pub_cap = self.create_publisher(Float64MultiArray, "capacitance", OUTPUT_QOS)
         self.pub_states = self.create_publisher(JointState, "unit_states", OUTPUT_QOS)
         self.pub_marker = self.create_publisher(Marker, "membrane", OUTPUT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", OUTPUT_QOS)
-        self.create_subscription(Float64MultiArray, "command/displacement",
-                                 lambda m: self._on_command("displacement", m), COMMAND_QOS)
-        self.create_subscription(Float64MultiArray, "command/voltage",
-                                 lambda m: self._on_command("voltage", m), COMMAND_QOS)
-        self.create_service(Trigger, "reset", self._on_reset)
+        self.updater = TwinUpdater(twin, {kind: np.zeros(n) for kind in COMMAND_KINDS}, self.modes,
+                                   self._publish_outputs, self._warn, self.solve_budget, stability_period,
+                                   event_driven=self.update_rate == 0)
+        self._command_subs = {
+            kind: self.create_subscription(
+                Float64MultiArray, f"command/{kind}", lambda m, kind=kind: self._on_command(kind, m), COMMAND_QOS,
+                event_callbacks=SubscriptionEventCallbacks(matched=lambda _: self._publish_diagnostics()))
+            for kind in COMMAND_KINDS}
+        self.create_service(Trigger, "reset", self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
         if self.update_rate > 0:
-            self.create_timer(1.0 / self.update_rate, self._on_tick)
+            self.create_timer(1.0 / self.update_rate, self.updater.tick)
         if self.marker_rate > 0:
             self.create_timer(1.0 / self.marker_rate, self._publish_marker)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.recorder = None
-        self.recording_error = ""
         self._start_recording()
-        self._update()
+        self.updater.start()
         self.get_logger().info(
             f"twin of {cfg.rows if cfg.layout == 'array' else 1}x{cfg.cols if cfg.layout == 'array' else 1} "
-            f"{cfg.layout} ready: {self.twin.model.mesh.n_elements} elements, {self.twin.model.disc.n_dofs} dofs, "
-            f"update_rate {self.update_rate} Hz")
+            f"{cfg.layout} ready: {self.model.mesh.n_elements} elements, {self.model.disc.n_dofs} dofs, "
+            f"update_rate {self.update_rate} Hz, solve_budget {self.solve_budget} s")
+
+    @property
+    def result(self) -> TwinResult | None:
+        """The last good result (None before the first solve)."""
+        return self.updater.result
+
+    def command_publishers(self, kind: str) -> int:
+        """Publishers of ``command/<kind>`` that every subscription of this node to it (the twin's and, when
+        recording, the recorder's) is connected to: once it is >= 1, a command sent is received."""
+        count = self._command_subs[kind].get_publisher_count()
+        if self.recorder is not None and not self.recording_error:
+            count = min(count, self.recorder.publisher_count(f"command/{kind}"))
+        return count
 
     # ---------------------------------------------------------------- parameters
     def _declare_config(self) -> ArrayConfig:
@@ -119,39 +147,41 @@ class TwinNode(Node):
             "config_file", "", ParameterDescriptor(description="twin config YAML; parameters below override it",
                                                    read_only=True)).value
         base = load_config(path or None)
-        values = {}
-        for name, default in base.to_dict().items():
-            value = self.declare_parameter(name, declared_default(default), config_descriptor(name, default)).value
-            values[name] = default if value is None else value  # None: an unset (empty) table
+        values = {name: declare_typed(self, name, default, config_descriptor(name, default))
+                  for name, default in base.to_dict().items()}
         return ArrayConfig.from_dict(values)
 
-    def _check_modes(self, modes: Sequence[str]) -> None:
+    def _check_modes(self, modes: object) -> tuple[str, ...]:
+        """``modes`` as a tuple, or ConfigError naming ``unit_modes``."""
+        if not isinstance(modes, (list, tuple)) or not all(isinstance(m, str) for m in modes):
+            raise ConfigError(f"unit_modes: expected a list of 'driven' or 'free', one per unit, got {modes!r}")
         try:
-            check_modes(modes, self.twin.n_units)
+            return check_modes(modes, self.config.n_units)
         except ValueError as exc:
             raise ConfigError(f"unit_modes: {exc}") from None
 
     def _on_set_parameters(self, params) -> SetParametersResult:
+        """Run-time changes, checked as strictly as a config file (type, range; the reason names the parameter)."""
         changes = {}
         modes = None
         for p in params:
             if p.name == "unit_modes":
                 try:
-                    self._check_modes(p.value)
+                    modes = self._check_modes(p.value)
                 except ConfigError as exc:
                     return SetParametersResult(successful=False, reason=str(exc))
-                modes = tuple(p.value)
             elif p.name in RUNTIME_FIELDS:
                 changes[p.name] = p.value
         if changes:
             try:
-                cfg = self.twin.config.replace(**changes)
-            except (ConfigError, TypeError) as exc:
+                cfg = ArrayConfig.from_dict({**self.config.to_dict(), **changes})
+            except ConfigError as exc:
                 return SetParametersResult(successful=False, reason=str(exc))
-            self.twin.config = cfg
+            self.config = cfg
+            self.updater.set_config(cfg)
         if modes is not None:
             self.modes = modes
-            self._dirty = True
+            self.updater.set_modes(modes)
         return SetParametersResult(successful=True)
 
     def _start_recording(self) -> None:
@@ -161,34 +191,35 @@ class TwinNode(Node):
             description="folder of the MCAP recordings", read_only=True)).value
         split_size = declare_number(self, "record_split_size", 0.0, "start a new file after this many bytes; 0 = never")
         split_duration = declare_number(self, "record_split_duration", 0.0,
-                                      "start a new file after this many seconds; 0 = never")
+                                        "start a new file after this many seconds; 0 = never")
         if not record:
             return
         from ..bag.twin_config import metadata_from_config
         from ..bag.writer import RecordingError
         from .recorder import TopicRecorder
 
-        metadata = metadata_from_config(self.twin.config, self.modes, self.update_rate)
+        metadata = metadata_from_config(self.config, self.modes, self.update_rate)
         try:
             self.recorder = TopicRecorder(self, directory, metadata, self._on_recording_error,
-                                          split_size=split_size, split_duration=split_duration)
+                                          split_size=split_size, split_duration=split_duration,
+                                          on_matched=self._publish_diagnostics)
             self.get_logger().info(f"recording to {self.recorder.writer.path}")
         except RecordingError as exc:
             self._on_recording_error(f"recording not started: {exc}")
 
     def _on_recording_error(self, text: str) -> None:
         self.recording_error = text
-        self.recorder = None
         self.get_logger().error(f"{text}; the twin keeps running without recording")
 
     def destroy_node(self) -> None:
-        """Finish the recording (if any), then destroy the node."""
+        """Stop the solver thread, finish the recording (if any), then destroy the node."""
+        self.updater.stop()
         if self.recorder is not None:
             self.recorder.close()
             self.recorder = None
         super().destroy_node()
 
-    # ---------------------------------------------------------------- callbacks
+    # ---------------------------------------------------------------- callbacks (executor)
     def _warn(self, key: str, text: str, period: float = 1.0) -> None:
         now = time.monotonic()
         if now - self._last_warn.get(key, -math.inf) >= period:
@@ -196,65 +227,43 @@ class TwinNode(Node):
             self.get_logger().warning(text)
 
     def _on_command(self, kind: str, msg: Float64MultiArray) -> None:
-        error = command_error(kind, msg.data, self.twin.config)
+        error = command_error(kind, msg.data, self.config)
         if error:
             self.counters[f"rejected_{kind}"] += 1
             self._warn(kind, f"rejected {kind} command: {error}")
             return
-        setattr(self, kind, np.array(msg.data, dtype=float))
-        self._dirty = True
-        if self.update_rate == 0:
-            self._update()
+        if kind == "displacement":
+            ignored = [k + 1 for k, (mode, d) in enumerate(zip(self.modes, msg.data)) if mode == FREE and d != 0.0]
+            if ignored:
+                self.counters["displacement_on_free_unit"] += 1
+                self._warn("free", f"displacement for free unit(s) {ignored} ignored: a free unit has no indenter "
+                                   f"(unit_modes {list(self.modes)})", period=5.0)
+        self.updater.post(kind, msg.data)
 
-    def _on_reset(self, request, response):
-        self.twin.reset()
-        self.displacement[:] = 0.0
-        self.voltage[:] = 0.0
-        self._dirty = True
-        self._update()
-        response.success = self.last_error == ""
-        response.message = "twin reset to 0 m, 0 V" if response.success else self.last_error
+    async def _on_reset(self, request, response):
+        """Pre-empt the solver thread and answer when the twin is flat again (the executor keeps running)."""
+        done = Future()
+        executor = self.executor
+
+        def finished(ok: bool, text: str) -> None:  # on the solver thread
+            done.set_result((ok, text))
+            if executor is not None:
+                executor.wake()
+
+        self.updater.reset(finished)
+        response.success, response.message = await done
         return response
 
-    def _on_tick(self) -> None:
-        now = time.monotonic()
-        if self._last_tick is not None:
-            missed = int((now - self._last_tick) * self.update_rate + 0.5) - 1
-            if missed > 0:
-                self.counters["skipped_ticks"] += missed
-        self._last_tick = now
-        self._update()
-
-    # ---------------------------------------------------------------- the update
-    def _update(self) -> None:
-        if self._dirty:
-            now = time.monotonic()
-            check = now - self._last_stability_time >= self.stability_period
-            try:
-                self.result = self.twin.solve(self.displacement, self.voltage, self.modes, check_stability=check)
-                self.last_error = ""
-                if check:
-                    self._last_stability_time = now
-            except (ConvergenceError, ValueError) as exc:
-                self.counters["failed_solves"] += 1
-                self.last_error = str(exc)
-                self._warn("solve", f"solve failed, keeping the last state: {exc}")
-            self._dirty = False
-            self._update_times.append(now)
-            self.counters["updates"] += 1
-        self._publish_outputs()
-
-    def _publish_outputs(self) -> None:
-        res = self.result
-        if res is None:
-            return
+    # ---------------------------------------------------------------- publishing
+    def _publish_outputs(self, res: TwinResult) -> None:
+        """Force, capacitance and unit states of ``res`` (called on the solver thread)."""
         stamp = self.get_clock().now().to_msg()
         self.pub_force.publish(unit_array(res.force))
         self.pub_cap.publish(unit_array(res.capacitance))
         states = JointState()
         states.header.stamp = stamp
         states.header.frame_id = self.frame_id
-        states.name = [f"unit_{k + 1}" for k in range(self.twin.n_units)]
+        states.name = [f"unit_{k + 1}" for k in range(len(res.force))]
         states.position = [float(v) for v in res.centre_deflection]
         states.effort = [float(v) for v in res.force]
         self.pub_states.publish(states)
@@ -263,9 +272,9 @@ class TwinNode(Node):
         res = self.result
         if res is None:
             return
-        model = self.twin.model
+        model = self.model
         pts = res.positions[model.mesh.elements[:, :3]].reshape(-1, 3)
-        level = np.clip(model.corner_area_stretch(res.positions) / self.twin.config.prestretch ** 2 - 1.0, 0.0, 1.0)
+        level = np.clip(model.corner_area_stretch(res.positions) / self.config.prestretch ** 2 - 1.0, 0.0, 1.0)
         # 0 at the pre-stretch, 1 at twice its area
         marker = Marker()
         marker.header.stamp = self.get_clock().now().to_msg()
@@ -277,23 +286,45 @@ class TwinNode(Node):
         marker.colors = [ColorRGBA(r=float(v), g=0.3, b=float(1.0 - v), a=1.0) for v in np.repeat(level, 3)]
         self.pub_marker.publish(marker)
 
+    def _check_duplicate_name(self) -> None:
+        me = (self.get_name(), self.get_namespace())
+        count = sum(1 for entry in self.get_node_names_and_namespaces() if entry == me)
+        self._duplicate = "" if count <= 1 else (
+            f"{count} nodes named {self.get_fully_qualified_name()} on this ROS domain: their outputs mix "
+            f"(give each its own namespace, -r __ns:=/name)")
+        if self._duplicate:
+            self._warn("duplicate", self._duplicate, period=10.0)
+
     def _publish_diagnostics(self) -> None:
+        self._check_duplicate_name()
         res = self.result
+        stats = self.updater.stats()
         status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: solver", hardware_id="dea_array_twin")
-        if self.last_error:
-            status.level, status.message = DiagnosticStatus.ERROR, f"last solve failed: {self.last_error}"
-        elif self.recording_error:
-            status.level, status.message = DiagnosticStatus.WARN, self.recording_error
+        problem = stats.thread_error or (stats.last_error and f"last solve failed: {stats.last_error}")
+        if problem:
+            status.level, status.message = DiagnosticStatus.ERROR, problem
+        elif self.recording_error or self._duplicate:
+            status.level, status.message = DiagnosticStatus.WARN, self.recording_error or self._duplicate
         elif res is not None and not res.ok:
             status.level, status.message = DiagnosticStatus.WARN, "; ".join(res.warnings)
         else:
             status.level, status.message = DiagnosticStatus.OK, "ok"
-        now = time.monotonic()
-        recent = [t for t in self._update_times if now - t <= 1.0]
-        self._update_times = recent
-        values = dict(self.counters)
-        values["achieved_update_rate_hz"] = len(recent)
-        values["recording"] = str(self.recorder.writer.path) if self.recorder else (self.recording_error or "off")
+        values = {
+            "updates": stats.updates, "updates_per_s": round(stats.updates_per_s, 2),
+            "outputs_per_s": round(stats.outputs_per_s, 2), "update_rate_hz": self.update_rate,
+            "solve_time_p50_ms": round(1e3 * stats.solve_time_p50, 3),
+            "solve_time_p95_ms": round(1e3 * stats.solve_time_p95, 3),
+            "solve_time_max_ms": round(1e3 * stats.solve_time_max, 3),
+            "solve_budget_s": self.solve_budget, "budget_overruns": stats.budget_overruns,
+            "failed_solves": stats.failed_solves, "skipped_ticks": stats.skipped_ticks, **self.counters,
+            **{f"command_publishers_{kind}": self.command_publishers(kind) for kind in COMMAND_KINDS},
+        }
+        if self.recorder is not None:
+            values.update(recording=self.recording_error or str(self.recorder.writer.path),
+                          recorder_written=self.recorder.written, recorder_dropped=self.recorder.dropped,
+                          recorder_backlog=self.recorder.backlog)
+        else:
+            values["recording"] = self.recording_error or "off"
         if res is not None:
             values.update(iterations=res.iterations, residual_N=res.residual, solve_time_ms=1e3 * res.solve_time,
                           stable=res.stable, wrinkled=res.wrinkled, field_exceeded=res.field_exceeded,

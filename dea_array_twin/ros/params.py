@@ -2,18 +2,31 @@
 
 Geometry, material and mesh fields are read-only after start (changing them means a
 new mesh and a new model: restart the node).  Unit modes and the command limits can
-change at run time.  The slip table (``slip_displacement``, ``slip_factor``) is a pair
-of read-only DOUBLE_ARRAY parameters, unset when the table is empty (rclpy would type
-an empty default as BYTE_ARRAY): ``-p slip_displacement:=[0.0,0.015] -p
-slip_factor:=[1.0,0.95]``.
+change at run time.
+
+Every parameter holds a value of a fixed type from the start, because rclpy's
+``get_parameters`` service (what ``ros2 param dump``, rqt and Foxglove call) answers
+nothing at all for a request that names one unset parameter:
+
+* a float field is a DOUBLE even when given as an integer (``-p prestretch:=2``) or
+  as a number in a string (``1e8``, which YAML 1.1 reads as text), as in a config file;
+* the slip table (``slip_displacement``, ``slip_factor``) is a DOUBLE_ARRAY, empty
+  when there is no table (rclpy would type a plain ``[]`` default as BYTE_ARRAY):
+  ``-p slip_displacement:=[0.0,0.015] -p slip_factor:=[1.0,0.95]``.
+
+The run-time doubles are dynamically typed so that the node's own check, which names
+the parameter and the allowed range, judges every value (a BOOL is refused by name,
+not by rclpy's bare type message); :func:`coerce_doubles` turns integers and numeric
+text into doubles before that check, so a parameter never changes its type.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Iterable
 
 from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.node import Node
 from rclpy.parameter import Parameter
 
 from ..model.config import ConfigError
@@ -33,7 +46,7 @@ _RANGES = {"rows": (1, 64), "cols": (1, 64), "element_order": (1, 2)}
 
 
 def config_descriptor(name: str, value: object) -> ParameterDescriptor:
-    """Descriptor (description with unit, read-only flag, integer range) of a config field."""
+    """Descriptor (description with unit, read-only flag, type, integer range) of a config field."""
     unit = _UNITS.get(name, "")
     doc = f"ArrayConfig.{name}" + (f" [{unit}]" if unit else "")
     desc = ParameterDescriptor(name=name, description=doc, read_only=name not in RUNTIME_FIELDS)
@@ -47,39 +60,92 @@ def config_descriptor(name: str, value: object) -> ParameterDescriptor:
     elif isinstance(value, int):
         desc.type = ParameterType.PARAMETER_INTEGER
     elif isinstance(value, float):
-        # Accept integers too ("-p prestretch:=2"): ArrayConfig.from_dict converts.
-        desc.dynamic_typing = True
+        desc.type = ParameterType.PARAMETER_DOUBLE
     else:
         desc.type = ParameterType.PARAMETER_STRING
     return desc
 
 
-def declared_default(value: object) -> Any:
-    """The default to declare a config field's parameter with (``declare_parameter``'s value).
+def as_double(name: str, value: Any) -> float:
+    """``value`` as a float the way the config loader takes it (int, float or numeric text), else ConfigError."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise ConfigError(f"{name}: expected a number, got {value!r}")
+    try:
+        return float(value)
+    except ValueError:
+        raise ConfigError(f"{name}: expected a number, got {value!r}") from None
 
-    ``value`` is from :meth:`.ArrayConfig.to_dict`.  A table is a list of float (a
-    DOUBLE_ARRAY); an empty one becomes the type
-    ``Parameter.Type.DOUBLE_ARRAY`` alone, which declares the parameter unset:
-    rclpy infers ``[]`` as BYTE_ARRAY, and a YAML or ``-p`` list of doubles would
-    then be rejected as the wrong type.  Unset reads back as None.
+
+def declare_typed(node: Node, name: str, default: Any, descriptor: ParameterDescriptor) -> Any:
+    """Declare a parameter that is set from the start and keeps the type of ``descriptor``; return its value.
+
+    ``descriptor.type`` says the type: a DOUBLE accepts an integer or numeric-text
+    override and stores it as a double; a DOUBLE_ARRAY without a value (an empty
+    table) is set to an empty double array.  A run-time double (not read-only)
+    stays dynamically typed (see the module docstring).
+
+    Raises
+    ------
+    ConfigError
+        A DOUBLE parameter was given something that is not a number; the message names it.
     """
-    if isinstance(value, list) and not value:
-        return Parameter.Type.DOUBLE_ARRAY
+    final = ParameterDescriptor()
+    final.name, final.description, final.read_only = name, descriptor.description, descriptor.read_only
+    final.type, final.integer_range = descriptor.type, descriptor.integer_range
+    final.floating_point_range = descriptor.floating_point_range
+    double = descriptor.type == ParameterType.PARAMETER_DOUBLE
+    table = descriptor.type == ParameterType.PARAMETER_DOUBLE_ARRAY
+    first = ParameterDescriptor(name=name, description=descriptor.description)  # writable until set below
+    if double:
+        first.dynamic_typing = True
+        value = node.declare_parameter(name, default, first).value
+    elif table and not default:
+        value = node.declare_parameter(name, Parameter.Type.DOUBLE_ARRAY, first).value
+    else:
+        first.type, first.integer_range = descriptor.type, descriptor.integer_range
+        value = node.declare_parameter(name, default, first).value
+    if double and not isinstance(value, float):
+        value = as_double(name, value)
+        node.set_parameters([Parameter(name, Parameter.Type.DOUBLE, value)])
+    elif table and value is None:
+        value = []
+        node.set_parameters([Parameter(name, Parameter.Type.DOUBLE_ARRAY, value)])
+    if double and not final.read_only:
+        final.dynamic_typing = True
+        final.type = ParameterType.PARAMETER_NOT_SET
+    node.set_descriptor(name, final)
     return value
 
 
-def declare_number(node: Any, name: str, default: float, text: str, minimum: float = 0.0) -> float:
-    """Declare a read-only numeric parameter of ``node`` and return it as a finite float >= ``minimum``.
+def declare_number(node: Node, name: str, default: float, text: str, minimum: float = 0.0) -> float:
+    """Declare a read-only DOUBLE parameter of ``node`` and return it, a finite float >= ``minimum``.
 
-    Integers are accepted too (``-p rate:=20``): the parameter is dynamically typed.
+    Integers are accepted too (``-p rate:=20``) and stored as doubles.
 
     Raises
     ------
     ConfigError
         The value is not a number, not finite or below ``minimum``; the message names it.
     """
-    value = node.declare_parameter(name, default, ParameterDescriptor(
-        description=text, read_only=True, dynamic_typing=True)).value
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (minimum <= value < math.inf):
+    value = declare_typed(node, name, float(default), ParameterDescriptor(
+        description=text, read_only=True, type=ParameterType.PARAMETER_DOUBLE))
+    if not minimum <= value < math.inf:
         raise ConfigError(f"{name}: must be a number >= {minimum:g}, got {value!r}")
-    return float(value)
+    return value
+
+
+def coerce_doubles(params: Iterable[Parameter], names: Iterable[str]) -> list[Parameter]:
+    """A pre-set callback's work: integers and numeric text for the double parameters ``names`` become doubles.
+
+    Anything else is passed on unchanged, for the on-set check to refuse by name.
+    """
+    names = set(names)
+    out = []
+    for p in params:
+        if p.name in names and p.type_ in (Parameter.Type.INTEGER, Parameter.Type.STRING):
+            try:
+                p = Parameter(p.name, Parameter.Type.DOUBLE, as_double(p.name, p.value))
+            except ConfigError:
+                pass
+        out.append(p)
+    return out

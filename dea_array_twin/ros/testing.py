@@ -1,7 +1,6 @@
 """Test harness for controllers developed against the twin (pytest-friendly).
 
-Each harness runs on its own ROS domain (a free id from ``domain_coordinator``) with
-discovery limited to localhost, so parallel tests never see each other::
+::
 
     from dea_array_twin.ros.testing import TwinHarness
 
@@ -10,11 +9,28 @@ discovery limited to localhost, so parallel tests never see each other::
             h.send_displacement([0.0, 0.01, 0.0])
             force = h.wait_for("force", lambda m: m.data[1] > 0.1, timeout=10.0)
 
+Isolation: each harness runs on a ROS domain of its own with discovery limited to
+localhost (``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``), so tests running in parallel
+on one machine (pytest-xdist, two CI jobs) never see each other's twins.  The id comes
+from ``domain_coordinator`` (the ``ros-jazzy-domain-coordinator`` wheel), which holds
+a lock per id for as long as the harness lives, so no two harnesses on the machine get
+the same one.  Pin an id with ``TwinHarness(domain_id=42)`` to watch a test from a
+shell (``ROS_DOMAIN_ID=42 ros2 topic echo /force``); valid ids are 0-232 (the harness
+then does not check that the id is free).
+
+No race on the first command: the harness publishes commands reliably, and
+``__enter__`` returns only when the twin's command subscriptions (and, when it
+records, its recorder's) are connected to the harness's publishers on *their* side
+(in-process: asked directly; as a process: read from the ``command_publishers_*``
+values of the twin's ``/diagnostics``, which it publishes whenever a command publisher
+connects).  A command sent after that is received: a controller test never loses its
+first command.
+
 ``TwinHarness(process=True)`` starts the twin as a separate process (``python -m
 dea_array_twin.ros.node``), as ``ros2 run`` would; otherwise it runs in this process on
-its own executor thread.  ``harness.node`` is the test-side node: add your
-controller's publishers/subscriptions to it or spin your own nodes with
-``harness.context``.
+the harness's executor thread (its solver and recorder have threads of their own).
+``harness.node`` is the test-side node: add your controller's publishers and
+subscriptions to it or spin your own nodes with ``harness.context``.
 """
 
 from __future__ import annotations
@@ -32,12 +48,16 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from ..bag.msg_definitions import message_class
-from .node import OUTPUT_QOS, TwinNode
+from .node import COMMAND_KINDS, TwinNode
 from .recorder import RECORDED_TOPICS
+
+#: QoS of the harness's command publishers and output subscriptions: reliable, deep enough for a flood.
+HARNESS_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
 
 def _output_types() -> dict[str, type]:
@@ -59,10 +79,21 @@ class TwinHarness:
         Namespace of the twin (its topics are relative).
     params_file : str, optional
         A ROS parameters YAML for the twin (``process=True`` only).
+    domain_id : int, optional
+        The ROS domain to use (0-232); default: a free one from ``domain_coordinator``.
+
+    Attributes
+    ----------
+    sent : dict
+        Commands published so far per kind (``"displacement"``, ``"voltage"``).
     """
 
     def __init__(self, parameters: dict[str, Any] | None = None, process: bool = False, namespace: str = "",
-                 params_file: str | None = None):
+                 params_file: str | None = None, domain_id: int | None = None):
+        if domain_id is not None and not (isinstance(domain_id, int) and 0 <= domain_id <= 232):
+            raise ValueError(f"domain_id must be an integer in [0, 232], got {domain_id!r}")
+        self.requested_domain = domain_id
+        self.sent = {kind: 0 for kind in COMMAND_KINDS}
         self.parameters = dict(parameters or {})
         self.params_file = params_file
         self.process_mode = process
@@ -70,6 +101,7 @@ class TwinHarness:
         self._stack = contextlib.ExitStack()
         self._lock = threading.Lock()
         self._messages: dict[str, list] = {}
+        self._times: dict[str, list[float]] = {}
         self.twin_node: TwinNode | None = None
         self.process: subprocess.Popen | None = None
         #: Exception raised by a callback on the executor thread (which then stops).
@@ -80,7 +112,8 @@ class TwinHarness:
         from domain_coordinator import domain_id
 
         try:
-            self.domain_id = self._stack.enter_context(domain_id())
+            self.domain_id = self.requested_domain if self.requested_domain is not None else \
+                self._stack.enter_context(domain_id())
             previous = os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE")
             os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
             self._stack.callback(_restore_env, "ROS_AUTOMATIC_DISCOVERY_RANGE", previous)
@@ -100,10 +133,10 @@ class TwinHarness:
                 self.executor.add_node(self.twin_node)
             self.executor.add_node(self.node)
             self._pubs = {kind: self.node.create_publisher(Float64MultiArray, self.topic(f"command/{kind}"),
-                                                           OUTPUT_QOS) for kind in ("displacement", "voltage")}
+                                                           HARNESS_QOS) for kind in COMMAND_KINDS}
             for name, msg_type in _output_types().items():
                 self.node.create_subscription(msg_type, self.topic(name),
-                                              lambda m, n=name: self._store(n, m), OUTPUT_QOS)
+                                              lambda m, n=name: self._store(n, m), HARNESS_QOS)
             self._reset = self.node.create_client(Trigger, self.topic("reset"))
             self._thread = threading.Thread(target=self._spin, daemon=True)
             self._thread.start()
@@ -117,19 +150,21 @@ class TwinHarness:
     def __exit__(self, *exc) -> None:
         self._stack.close()
 
+    def _twin_receives_commands(self) -> bool:
+        """Every subscription of the twin to each command topic is connected to our publisher, on its side."""
+        if self.twin_node is not None:
+            return all(self.twin_node.command_publishers(kind) >= 1 for kind in COMMAND_KINDS)
+        for msg in reversed(self.messages("/diagnostics")):
+            values = diagnostic_values(msg)
+            if f"command_publishers_{COMMAND_KINDS[0]}" in values:
+                return all(int(values[f"command_publishers_{kind}"]) >= 1 for kind in COMMAND_KINDS)
+        return False
+
     def _wait_until_connected(self, timeout: float) -> None:
-        """Block until the twin's command subscriptions and outputs are discovered."""
+        """Block until the twin receives our commands and we receive its outputs."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            # Matched on our (writer) side; the twin's best-effort reader matches at about
-            # the same time: give it a moment, since a best-effort sample sent before
-            # that is dropped.
-            # Every command subscription the graph shows (the twin's own and, when it
-            # records, its recorder's) must be matched, not just one of them.
-            if (all(pub.get_subscription_count() >= max(1, self.node.count_subscribers(pub.topic_name))
-                    for pub in self._pubs.values())
-                    and self.node.count_publishers(self.topic("force")) >= 1):
-                time.sleep(0.2)
+            if self._twin_receives_commands() and self.node.count_publishers(self.topic("force")) >= 1:
                 return
             if self.process is not None and self.process.poll() is not None:
                 raise RuntimeError(f"twin process exited with {self.process.returncode}: "
@@ -182,26 +217,39 @@ class TwinHarness:
         return name if name.startswith("/") else f"{self.namespace}/{name}" if self.namespace else name
 
     def _store(self, name: str, msg: Any) -> None:
+        now = time.monotonic()
         with self._lock:
             self._messages.setdefault(name, []).append(msg)
+            self._times.setdefault(name, []).append(now)
 
     def messages(self, name: str) -> list:
         """Every message received on output ``name`` so far."""
         with self._lock:
             return list(self._messages.get(name, []))
 
+    def receive_times(self, name: str) -> list[float]:
+        """When each message of :meth:`messages` arrived (``time.monotonic()`` seconds)."""
+        with self._lock:
+            return list(self._times.get(name, []))
+
     def clear(self) -> None:
         """Forget received messages."""
         with self._lock:
             self._messages.clear()
+            self._times.clear()
+
+    def send(self, kind: str, values) -> None:
+        """Publish a command of ``kind`` (``"displacement"`` [m] or ``"voltage"`` [V]), one value per unit."""
+        self._pubs[kind].publish(Float64MultiArray(data=[float(v) for v in values]))
+        self.sent[kind] += 1
 
     def send_displacement(self, values) -> None:
         """Publish a displacement command [m], one value per unit."""
-        self._pubs["displacement"].publish(Float64MultiArray(data=[float(v) for v in values]))
+        self.send("displacement", values)
 
     def send_voltage(self, values) -> None:
         """Publish a voltage command [V], one value per unit."""
-        self._pubs["voltage"].publish(Float64MultiArray(data=[float(v) for v in values]))
+        self.send("voltage", values)
 
     def wait_for(self, name: str, predicate: Callable[[Any], bool] | None = None, timeout: float = 10.0,
                  after: int = 0) -> Any:
@@ -236,6 +284,11 @@ class TwinHarness:
                 raise TimeoutError("reset service did not answer")
             time.sleep(0.01)
         return future.result()
+
+
+def diagnostic_values(msg: Any) -> dict[str, str]:
+    """The key/value pairs of the first status of a DiagnosticArray (the twin publishes one)."""
+    return {kv.key: kv.value for kv in msg.status[0].values} if msg.status else {}
 
 
 def _restore_env(name: str, value: str | None) -> None:

@@ -230,7 +230,7 @@ def _node_config(args: list[str]) -> tuple[ArrayConfig, object]:
     try:
         node = TwinNode(context=context)
         try:
-            return node.twin.config, node.describe_parameter("slip_factor")
+            return node.config, node.describe_parameter("slip_factor")
         finally:
             node.destroy_node()
     finally:
@@ -256,7 +256,7 @@ def test_node_with_a_slip_table_reports_the_cores_answer():
     ref = ArrayTwin(BASE.replace(**table)).solve([0.0, 0.012, 0.0], 0.0, FREE_CENTRE)
     params = dict(COARSE, **table, unit_modes=list(FREE_CENTRE), update_rate=50.0, marker_rate=0.0)
     with TwinHarness(parameters=params) as h:
-        assert h.twin_node.twin.config == BASE.replace(**table)
+        assert h.twin_node.config == BASE.replace(**table)
         h.send_displacement([0.0, 0.012, 0.0])
         cap = h.wait_for("capacitance", lambda m: m.data[1] == pytest.approx(ref.capacitance[1], rel=1e-7),
                          timeout=20)

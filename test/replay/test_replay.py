@@ -276,8 +276,10 @@ def test_fit_lag_window_pairs_late_outputs_but_reaches_no_further_than_the_lag()
         assert compare_outputs(run, {"force": (times, unrelated)}, lag_ns=lag)["force"][0] < honest + 10.0
 
 
-def test_a_solver_failure_stops_the_replay_with_exit_1_keeping_the_states_before_it(tmp_path, capsys,
-                                                                                     monkeypatch):
+def test_a_command_without_equilibrium_is_reported_and_the_replay_goes_on_like_the_node(tmp_path, capsys,
+                                                                                      monkeypatch):
+    """The node keeps its last state at a failed solve, holds the command and goes on: so does the replay,
+    and exits 1 at the end."""
     from dea_array_twin.model.solver import ConvergenceError
 
     bag, outputs = twin_recording(tmp_path / "run.mcap")
@@ -293,11 +295,14 @@ def test_a_solver_failure_stops_the_replay_with_exit_1_keeping_the_states_before
     monkeypatch.setattr(ArrayTwin, "solve", failing_solve)
     assert main(["replay", str(bag)]) == 1
     err = capsys.readouterr().err
-    assert "solver failed" in err and "injected" in err and "t = 0.350000 s" in err and "Traceback" not in err
+    assert "keeping the last state" in err and "injected" in err and "t = 0.350000 s" in err
+    assert "1 command(s) without equilibrium" in err and "Traceback" not in err
     forces = read_topic(tmp_path / "run_replay.mcap", "/force")
-    assert len(forces) == 3
-    np.testing.assert_allclose(forces[-1][1], outputs[3][1], rtol=1e-6, atol=1e-9)
-    assert len((tmp_path / "run_replay.csv").read_text().splitlines()) == 1 + 3
+    assert len(forces) == len(outputs) - 2  # every solve but the failed one (outputs[0] is the zero state)
+    # the failed voltage stays held: the next command solves with it, as the recording did
+    for (t, force), (t_rec, recorded, _) in zip(forces[3:], outputs[5:]):
+        np.testing.assert_allclose(force, recorded, rtol=1e-6, atol=1e-9)
+    assert len((tmp_path / "run_replay.csv").read_text().splitlines()) == 1 + len(outputs) - 2
 
 
 def test_replay_maps_renamed_command_topics_and_ignores_others(tmp_path, capsys):

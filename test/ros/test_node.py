@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
-from rcl_interfaces.srv import SetParameters
+from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
 
 from dea_array_twin import ArrayConfig, ArrayTwin
 from dea_array_twin.ros.testing import TwinHarness
@@ -81,6 +81,24 @@ def test_reset_returns_to_the_flat_membrane():
         assert list(h.messages("force")[-1].data) == [0.0, 0.0, 0.0]
 
 
+def test_reset_pre_empts_a_slow_solve():
+    """6 kV at 15 mm is accepted (breakdown_field raised) and Newton fails slowly (about a second on
+    the default mesh); nothing newer waits, so the solve runs on until reset abandons it: it never
+    gets to fail, and reset answers with the flat membrane."""
+    with TwinHarness(parameters=dict(update_rate=20.0, breakdown_field=300e6, marker_rate=0.0)) as h:
+        h.send_displacement([0.0, 0.015, 0.0])
+        h.wait_for("unit_states", lambda m: m.position[1] == 0.015, timeout=30)
+        h.send_voltage([0.0, 6000.0, 0.0])
+        time.sleep(0.2)
+        response = h.reset()
+        assert response.success, response.message
+        _, values = _diag(h, key_values_after=len(h.messages("/diagnostics")))
+        assert values["failed_solves"] == "0"  # pre-empted, not failed
+        flat = ArrayTwin().model.flat_capacitance
+        cap = h.wait_for("capacitance", after=len(h.messages("capacitance")), timeout=5)
+        assert list(cap.data) == pytest.approx(flat.tolist(), rel=1e-9)
+
+
 def test_a_failed_solve_keeps_the_last_state_reports_error_and_recovers():
     """A voltage below the breakdown limit but beyond electromechanical stability."""
     with TwinHarness(parameters={"update_rate": 20.0, "breakdown_field": 300e6}) as h:
@@ -104,6 +122,35 @@ def test_params_file_is_honoured(tmp_path):
     assert list(cap.data) == pytest.approx(flat.tolist(), rel=1e-9)
 
 
+@pytest.mark.parametrize("content, reason", [
+    (None, "Error opening YAML file"),
+    ("/**:\n  ros__parameters:\n    update_rate: [1, \n", "Error parsing"),
+    ("update_rate: 20\n", "Cannot have a value before ros__parameters"),
+], ids=["missing", "not YAML", "no ros__parameters"])
+def test_a_broken_params_file_exits_2_with_one_line_naming_it(tmp_path, content, reason):
+    params = tmp_path / "twin.yaml"
+    if content is not None:
+        params.write_text(content)
+    proc = subprocess.run([sys.executable, "-m", "dea_array_twin.ros.node", "--ros-args", "--params-file",
+                           str(params)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    assert f"dea_array_twin: error: invalid ROS arguments: Couldn't parse params file: '--params-file {params}'" \
+        in proc.stderr and reason in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_a_pinned_domain_is_used_and_an_invalid_one_refused():
+    from domain_coordinator import domain_id
+
+    with pytest.raises(ValueError, match="domain_id must be an integer in \\[0, 232\\]"):
+        TwinHarness(domain_id=233)
+    with domain_id() as free:  # a free id, as a user would pick one no other test uses
+        with TwinHarness(parameters={"update_rate": 20.0, "marker_rate": 0.0}, domain_id=free) as h:
+            assert h.domain_id == free == h.context.get_domain_id()
+            h.send_displacement([0.0, 0.002, 0.0])
+            h.wait_for("unit_states", lambda m: m.position[1] == 0.002, timeout=30)
+
+
 def test_invalid_parameter_stops_the_start_naming_it(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "dea_array_twin.ros.node", "--ros-args",
                            "-p", "indenter_radius:=0.02"],
@@ -112,27 +159,73 @@ def test_invalid_parameter_stops_the_start_naming_it(tmp_path):
     assert "indenter_radius" in proc.stderr
 
 
-def test_runtime_parameters_validate_and_explain():
-    with TwinHarness(parameters={"update_rate": 20.0}) as h:
-        client = h.node.create_client(SetParameters, "dea_array_twin/set_parameters")
-        assert client.wait_for_service(timeout_sec=10)
+def _call(h, srv_type, service, request, timeout=10.0):
+    """Call a twin service from the harness's node and wait for the answer."""
+    client = h.node.create_client(srv_type, service)
+    assert client.wait_for_service(timeout_sec=timeout), service
+    future = client.call_async(request)
+    deadline = time.monotonic() + timeout
+    while not future.done() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert future.done(), f"{service} did not answer"
+    return future.result()
 
-        def set_param(name, ptype, **value):
-            req = SetParameters.Request(parameters=[ParameterMsg(name=name, value=ParameterValue(type=ptype, **value))])
-            future = client.call_async(req)
-            deadline = time.monotonic() + 10
-            while not future.done() and time.monotonic() < deadline:
-                time.sleep(0.01)
-            return future.result().results[0]
 
-        bad = set_param("unit_modes", ParameterType.PARAMETER_STRING_ARRAY, string_array_value=["free", "loose", "x"])
-        assert not bad.successful and "unit_modes" in bad.reason
-        assert not set_param("spacing", ParameterType.PARAMETER_DOUBLE, double_value=0.01).successful
-        ok = set_param("unit_modes", ParameterType.PARAMETER_STRING_ARRAY, string_array_value=FREE_CENTRE)
-        assert ok.successful
-        h.send_displacement([0.0, 0.01, 0.0])
-        msg = h.wait_for("force", lambda m: m.data[1] > 0.1, timeout=20)
+def _set(h, name, ptype, **value):
+    request = SetParameters.Request(parameters=[ParameterMsg(name=name, value=ParameterValue(type=ptype, **value))])
+    return _call(h, SetParameters, "dea_array_twin/set_parameters", request).results[0]
+
+
+def _get(h, names):
+    return _call(h, GetParameters, "dea_array_twin/get_parameters", GetParameters.Request(names=names)).values
+
+
+def test_every_parameter_answers_get_parameters_as_ros2_param_dump_asks():
+    """``ros2 param dump`` lists the names, then gets all of them in one request: rclpy answers an empty
+    list if a single one is unset (the empty slip table was).  Integer overrides of float parameters are
+    stored as doubles, so the dump shows the types the node reads."""
+    with TwinHarness(parameters={"update_rate": 20, "prestretch": 1.2, "marker_rate": 0.0}) as h:
+        names = _call(h, ListParameters, "dea_array_twin/list_parameters", ListParameters.Request()).result.names
+        values = dict(zip(names, _get(h, names)))
+    assert len(values) == len(names) > len(ArrayConfig().to_dict())
+    assert set(ArrayConfig().to_dict()) | {"update_rate", "solve_budget", "unit_modes", "record"} <= set(names)
+    for table in ("slip_displacement", "slip_factor"):
+        assert values[table].type == ParameterType.PARAMETER_DOUBLE_ARRAY
+        assert list(values[table].double_array_value) == []
+    assert values["update_rate"].type == ParameterType.PARAMETER_DOUBLE and values["update_rate"].double_value == 20.0
+    assert values["prestretch"].type == ParameterType.PARAMETER_DOUBLE and values["prestretch"].double_value == 1.2
+    assert values["solve_budget"].double_value == pytest.approx(5 / 20)  # default: 5 update periods
+    assert values["rows"].type == ParameterType.PARAMETER_INTEGER
+    assert list(values["unit_modes"].string_array_value) == ["driven"] * 3
+
+
+def test_runtime_parameters_are_checked_like_a_config_file_and_keep_their_type():
+    with TwinHarness(parameters={"update_rate": 20.0, "marker_rate": 0.0}) as h:
+        refused = {
+            "unit_modes": _set(h, "unit_modes", ParameterType.PARAMETER_STRING_ARRAY,
+                               string_array_value=["free", "loose", "x"]),
+            "unit_modes as text": _set(h, "unit_modes", ParameterType.PARAMETER_STRING, string_value="free"),
+            "max_displacement": _set(h, "max_displacement", ParameterType.PARAMETER_BOOL, bool_value=True),
+            "breakdown_field": _set(h, "breakdown_field", ParameterType.PARAMETER_DOUBLE, double_value=-1.0),
+            "spacing": _set(h, "spacing", ParameterType.PARAMETER_DOUBLE, double_value=0.01),
+        }
+        for name, result in refused.items():
+            assert not result.successful and name.split()[0] in result.reason, (name, result.reason)
+        assert "must be a finite number > 0" in refused["breakdown_field"].reason
+        assert "read-only" in refused["spacing"].reason
+        # ros2 param set max_displacement 1 (an integer) and breakdown_field 1e8 (YAML 1.1 reads it as text)
+        assert _set(h, "max_displacement", ParameterType.PARAMETER_INTEGER, integer_value=1).successful
+        assert _set(h, "breakdown_field", ParameterType.PARAMETER_STRING, string_value="1e8").successful
+        limits = _get(h, ["max_displacement", "breakdown_field"])
+        assert [(v.type, v.double_value) for v in limits] == [(ParameterType.PARAMETER_DOUBLE, 1.0),
+                                                             (ParameterType.PARAMETER_DOUBLE, 1e8)]
+        assert h.twin_node.config.max_displacement == 1.0 and h.twin_node.config.breakdown_field == 1e8
+        assert _set(h, "unit_modes", ParameterType.PARAMETER_STRING_ARRAY, string_array_value=FREE_CENTRE).successful
+        h.send_displacement([0.002, 0.01, 0.0])  # unit 1 is free now: its 2 mm are ignored, with a warning
+        msg = h.wait_for("force", lambda m: m.data[1] > 0.1, timeout=30)
         assert msg.data[0] == 0.0 and msg.data[2] == 0.0  # free units carry no force
+        _, values = _diag(h, key_values_after=len(h.messages("/diagnostics")))
+        assert values["displacement_on_free_unit"] == "1"
 
 
 def test_command_flood_leaves_no_backlog():
@@ -169,12 +262,14 @@ def test_shipped_params_file_starts_the_twin():
 
 def test_update_rate_zero_updates_once_per_command():
     with TwinHarness(parameters={"update_rate": 0.0, "marker_rate": 0.0}) as h:
-        n = len(h.messages("force"))
         for d in (0.001, 0.002, 0.003):
             h.send_displacement([0.0, d, 0.0])
             h.wait_for("unit_states", lambda m, d=d: m.position[1] == d, timeout=10)
         time.sleep(0.5)
-        assert len(h.messages("force")) - n == 3  # one output per command, none in between
+        # the start-up output (flat state) may or may not have reached the harness: count from the first command's
+        states = h.messages("unit_states")
+        first = next(i for i, m in enumerate(states) if m.position[1] == 0.001)
+        assert [m.position[1] for m in states[first:]] == [0.001, 0.002, 0.003]  # one output per command
 
 
 def test_namespaced_twin_publishes_the_deformed_membrane_marker():
@@ -182,7 +277,7 @@ def test_namespaced_twin_publishes_the_deformed_membrane_marker():
         assert h.topic("force") == "/left_array/force"
         h.send_displacement([0.0, 0.008, 0.0])
         marker = h.wait_for("membrane", lambda m: max(p.z for p in m.points) > 0.0079, timeout=20)
-        n_elements = h.twin_node.twin.model.mesh.n_elements
+        n_elements = h.twin_node.model.mesh.n_elements
         assert len(marker.points) == 3 * n_elements == len(marker.colors)
         assert max(p.z for p in marker.points) == pytest.approx(0.008)
         assert marker.type == marker.TRIANGLE_LIST and marker.header.frame_id == "dea_array"

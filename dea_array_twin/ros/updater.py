@@ -1,0 +1,310 @@
+"""The twin's solver thread: the latest command in, one update of the twin at a time, outputs out.
+
+The node's executor only moves messages.  Its callbacks hand work to a
+:class:`TwinUpdater` and return at once:
+
+* :meth:`~TwinUpdater.post` puts a command into a one-slot mailbox per kind (sample and
+  hold: a newer command of a kind replaces the older one, solved or not);
+  :meth:`~TwinUpdater.set_modes` and :meth:`~TwinUpdater.set_config` change what the
+  next update uses;
+* :meth:`~TwinUpdater.tick` (the node's update timer) asks for one update; with
+  ``event_driven`` every change of the mailbox does;
+* :meth:`~TwinUpdater.reset` pre-empts: a running solve is abandoned at its next Newton
+  iteration, the twin returns to the flat state at 0 m, 0 V and the callback is told.
+
+The thread takes a :class:`CommandSnapshot` of the mailbox, makes one call into the
+twin (:meth:`_update_twin`, the only place that touches the
+:class:`~dea_array_twin.model.twin.ArrayTwin`, which is not thread-safe) and hands the
+result to ``publish``.  A solve has a time budget: past it, if a newer command waits in
+the mailbox, the solve is abandoned at its next Newton iteration
+(:class:`~dea_array_twin.model.solver.SolveCancelled`), the last good state is kept and
+published, the overrun is counted, and the newest command is taken next.  Two rules
+keep the twin making progress:
+
+* a solve past its budget with nothing newer to do runs on (abandoning it would
+  only throw its work away: a single step command, a change of unit modes, always gets
+  its answer, however long it takes; ``reset`` still pre-empts it);
+* each consecutive abandonment doubles the budget of the next solve (back to
+  ``budget`` after a solve that ends, well or not): a stream of commands that each need
+  longer than the budget (a change of unit modes, a big jump under way) is not starved
+  for ever, it is answered within about twice its solve time.
+
+Counters, rates and solve-time percentiles for the node's diagnostics come from
+:meth:`~TwinUpdater.stats`.  No rclpy here: the node passes plain callables.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+from ..model.config import ArrayConfig
+from ..model.solver import ConvergenceError, SolveCancelled
+from ..model.twin import ArrayTwin, TwinResult
+
+#: Seconds of solves the solve-time percentiles are taken over.
+STATS_WINDOW = 10.0
+#: Seconds the update and output rates are averaged over.
+RATE_WINDOW = 5.0
+
+
+@dataclass(frozen=True)
+class CommandSnapshot:
+    """Everything one update of the twin needs, taken from the mailbox at once.
+
+    Attributes
+    ----------
+    commands : mapping of str to ndarray
+        Command kind -> one value per unit, SI units; the kinds are the keyword
+        arguments of :meth:`ArrayTwin.solve` (``displacement`` [m], ``voltage`` [V]).
+    modes : tuple of str
+        ``"driven"`` / ``"free"`` per unit.
+    config : ArrayConfig
+        The config with the run-time parameters now in force.
+    seq : int
+        Increases with every change of the mailbox.
+    """
+
+    commands: Mapping[str, np.ndarray]
+    modes: tuple[str, ...]
+    config: ArrayConfig
+    seq: int
+
+
+@dataclass
+class UpdaterStats:
+    """What the solver thread did (for diagnostics); counts since start unless said otherwise.
+
+    ``updates_per_s`` (successful solves) and ``outputs_per_s`` are averages over the
+    last :data:`RATE_WINDOW` seconds; the solve times [s] are those of the successful
+    solves of the last :data:`STATS_WINDOW` seconds (nan if none).
+    """
+
+    updates: int = 0
+    failed_solves: int = 0
+    budget_overruns: int = 0
+    skipped_ticks: int = 0
+    outputs: int = 0
+    updates_per_s: float = 0.0
+    outputs_per_s: float = 0.0
+    solve_time_p50: float = float("nan")
+    solve_time_p95: float = float("nan")
+    solve_time_max: float = float("nan")
+    last_error: str = ""
+    thread_error: str = ""
+
+
+class TwinUpdater:
+    """Runs every solve of ``twin`` on its own thread, on the latest command.
+
+    Parameters
+    ----------
+    twin : ArrayTwin
+        Touched only by this thread from :meth:`start` on.
+    commands : mapping of str to array
+        The initial command of each kind (usually zeros).
+    modes : sequence of str
+        Initial unit modes.
+    publish : callable
+        ``publish(result)`` after every update (on this thread), with the last good
+        result (also after a failed or abandoned solve).
+    log : callable
+        ``log(key, text)`` for warnings (throttling is the caller's business).
+    budget : float
+        Seconds a solve may take before it is abandoned for a newer command; 0 = no budget.
+    stability_period : float
+        Seconds between stability checks of the equilibrium (0 = every update).
+    event_driven : bool
+        Update on every change of the mailbox instead of on :meth:`tick`.
+    """
+
+    def __init__(self, twin: ArrayTwin, commands: Mapping[str, Sequence[float]], modes: Sequence[str],
+                 publish: Callable[[TwinResult], None], log: Callable[[str, str], None], budget: float,
+                 stability_period: float, event_driven: bool = False):
+        self.twin = twin
+        self._publish, self._log = publish, log
+        self.budget, self.stability_period, self.event_driven = budget, stability_period, event_driven
+        self._cond = threading.Condition()
+        self._commands = {kind: np.array(v, dtype=float) for kind, v in commands.items()}
+        self._modes = tuple(modes)
+        self._config = twin.config
+        self._seq, self._solved_seq = 1, 0  # the first update solves the initial command ...
+        self._ticks = 1  # ... at once
+        self._resets: list[Callable[[bool, str], None]] = []
+        self._stopping = False
+        self._last_stability = -np.inf
+        self._abandoned_in_a_row = 0
+        #: The last good result (None until the first solve succeeds); read by the node's timers.
+        self.result: TwinResult | None = None
+        self._stats = UpdaterStats()
+        self._solve_times: deque[tuple[float, float]] = deque()  # (end, duration) of recent solves
+        self._output_times: deque[float] = deque()
+        self._started = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="twin-solver", daemon=True)
+
+    # ------------------------------------------------------------------ called from the executor
+    def start(self) -> None:
+        """Start the thread (it makes the first update at once)."""
+        self._thread.start()
+
+    def post(self, kind: str, values: Sequence[float]) -> None:
+        """Hold ``values`` as the latest command of ``kind`` (checked by the caller)."""
+        with self._cond:
+            self._commands[kind] = np.array(values, dtype=float)
+            self._changed()
+
+    def set_modes(self, modes: Sequence[str]) -> None:
+        """Use ``modes`` from the next update on (checked by the caller)."""
+        with self._cond:
+            self._modes = tuple(modes)
+            self._changed()
+
+    def set_config(self, config: ArrayConfig) -> None:
+        """Use ``config`` (run-time fields changed only) from the next update on."""
+        with self._cond:
+            self._config = config
+            self._changed()
+
+    def tick(self) -> None:
+        """One update period has passed."""
+        with self._cond:
+            self._ticks += 1
+            self._cond.notify()
+
+    def reset(self, done: Callable[[bool, str], None]) -> None:
+        """Abandon any running solve, return to 0 m, 0 V and the flat state; then call ``done(ok, message)``."""
+        with self._cond:
+            self._resets.append(done)
+            self._cond.notify()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Abandon any running solve and end the thread (no update or publish after this returns)."""
+        with self._cond:
+            self._stopping = True
+            self._cond.notify()
+        if self._thread.is_alive() and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+
+    def stats(self) -> UpdaterStats:
+        """Counters, rates and solve-time percentiles (see :class:`UpdaterStats`)."""
+        now = time.monotonic()
+        with self._cond:
+            s = UpdaterStats(**vars(self._stats))
+            self._prune(now)
+            ends = np.array([end for end, _ in self._solve_times])
+            times = np.array([dt for _, dt in self._solve_times])
+            outputs = len(self._output_times)
+        span = max(min(RATE_WINDOW, now - self._started), 1e-3)
+        s.updates_per_s, s.outputs_per_s = np.count_nonzero(ends >= now - RATE_WINDOW) / span, outputs / span
+        if times.size:
+            s.solve_time_p50, s.solve_time_p95 = np.percentile(times, [50, 95])
+            s.solve_time_max = times.max()
+        return s
+
+    def _prune(self, now: float) -> None:
+        while self._solve_times and self._solve_times[0][0] < now - STATS_WINDOW:
+            self._solve_times.popleft()
+        while self._output_times and self._output_times[0] < now - RATE_WINDOW:
+            self._output_times.popleft()
+
+    def _changed(self) -> None:
+        self._seq += 1
+        if self.event_driven:
+            self._cond.notify()
+
+    # ------------------------------------------------------------------ the thread
+    def _due(self) -> bool:
+        return self._seq != self._solved_seq if self.event_driven else self._ticks > 0
+
+    def _run(self) -> None:
+        try:
+            while True:
+                with self._cond:
+                    while not (self._stopping or self._resets or self._due()):
+                        self._cond.wait()
+                    if self._stopping:
+                        return
+                    resets, self._resets = self._resets, []
+                    if resets:
+                        for kind in self._commands:
+                            self._commands[kind] = np.zeros_like(self._commands[kind])
+                        self._seq += 1
+                    elif self._ticks > 1:  # ticks that passed while the last solve ran
+                        self._stats.skipped_ticks += self._ticks - 1
+                    self._ticks = 0
+                    snapshot = None
+                    if self._seq != self._solved_seq:
+                        snapshot = CommandSnapshot({k: v.copy() for k, v in self._commands.items()}, self._modes,
+                                                   self._config, self._seq)
+                        self._solved_seq = self._seq
+                if resets:
+                    self.twin.reset()
+                    self._last_stability = -np.inf
+                if snapshot is not None:
+                    self._solve(snapshot)
+                for done in resets:
+                    error = self._stats.last_error
+                    done(not error, "twin reset to 0 m, 0 V" if not error else error)
+                if self.result is not None and not self._stopping:
+                    self._publish(self.result)
+                    with self._cond:
+                        self._stats.outputs += 1
+                        self._output_times.append(time.monotonic())
+                        self._prune(time.monotonic())
+        except Exception as exc:  # noqa: BLE001 - reported in diagnostics, never silent
+            with self._cond:
+                self._stats.thread_error = f"solver thread stopped: {exc!r}"
+            self._log("thread", self._stats.thread_error)
+
+    def _solve(self, snapshot: CommandSnapshot) -> None:
+        start = time.monotonic()
+        budget = self.budget * 2 ** self._abandoned_in_a_row
+        deadline = start + budget if self.budget > 0 else np.inf
+        check = start - self._last_stability >= self.stability_period
+
+        def cancel() -> bool:
+            return (self._stopping or bool(self._resets)
+                    or (time.monotonic() > deadline and self._seq != snapshot.seq))
+
+        try:
+            result = self._update_twin(snapshot, check, cancel)
+        except SolveCancelled:
+            if self._stopping or self._resets:
+                self._abandoned_in_a_row = 0
+                return  # pre-empted: no verdict on the command
+            self._abandoned_in_a_row += 1
+            text = (f"solve abandoned after {time.monotonic() - start:.3g} s, past its budget of {budget:.3g} s "
+                    f"(solve_budget), for a newer command; keeping the last state")
+            with self._cond:
+                self._stats.budget_overruns += 1
+                self._stats.last_error = text
+            self._log("budget", text)
+            return
+        except (ConvergenceError, ValueError) as exc:
+            self._abandoned_in_a_row = 0
+            with self._cond:
+                self._stats.failed_solves += 1
+                self._stats.last_error = str(exc)
+            self._log("solve", f"solve failed, keeping the last state: {exc}")
+            return
+        now = time.monotonic()
+        self._abandoned_in_a_row = 0
+        if check:
+            self._last_stability = start
+        self.result = result
+        with self._cond:
+            self._stats.updates += 1
+            self._stats.last_error = ""
+            self._solve_times.append((now, now - start))
+
+    def _update_twin(self, snapshot: CommandSnapshot, check_stability: bool,
+                     cancel: Callable[[], bool]) -> TwinResult:
+        """The one call into the twin per update (a new command kind is one more keyword)."""
+        self.twin.config = snapshot.config
+        return self.twin.solve(modes=snapshot.modes, check_stability=check_stability, cancel=cancel,
+                               **snapshot.commands)

@@ -1,0 +1,143 @@
+"""The solver thread's rules, without DDS: a stand-in twin whose solves take as long as a test says.
+
+A command value says how long its solve takes (seconds, in ``displacement[0]``); the
+stand-in asks ``cancel()`` every millisecond, as the Newton loop does every iteration.
+"""
+
+import threading
+import time
+
+import pytest
+
+from dea_array_twin.model.config import ArrayConfig
+from dea_array_twin.model.solver import SolveCancelled
+from dea_array_twin.ros.updater import TwinUpdater
+
+
+class SlowTwin:
+    """Solves ``displacement=[seconds, ...]`` in that many seconds unless cancelled; records what it did."""
+
+    def __init__(self):
+        self.config = ArrayConfig()
+        self.log: list[tuple[str, float]] = []  # (what, seconds asked for)
+        self.resets = 0
+        self.started = threading.Event()
+
+    def reset(self):
+        self.resets += 1
+
+    def solve(self, modes, check_stability, cancel, displacement, voltage):
+        seconds = float(displacement[0])
+        self.started.set()
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            if cancel():
+                self.log.append(("cancelled", seconds))
+                raise SolveCancelled("cancelled")
+            time.sleep(0.001)
+        self.log.append(("solved", seconds))
+        return seconds  # the "result": what the publish callback sees
+
+
+def wait_until(condition, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "condition not met in time"
+        time.sleep(0.005)
+
+
+@pytest.fixture
+def make_updater():
+    made = []
+
+    def make(budget=0.05, event_driven=True):
+        twin, published = SlowTwin(), []
+        updater = TwinUpdater(twin, {"displacement": [0.0, 0.0, 0.0], "voltage": [0.0, 0.0, 0.0]},
+                              ("driven",) * 3, published.append, lambda key, text: None, budget,
+                              stability_period=1.0, event_driven=event_driven)
+        updater.start()
+        made.append(updater)
+        wait_until(lambda: published)  # the start-up solve of the zero command
+        return updater, twin, published
+
+    yield make
+    for updater in made:
+        updater.stop()
+
+
+def test_a_long_solve_with_nothing_newer_runs_to_its_end(make_updater):
+    updater, twin, published = make_updater(budget=0.05)
+    updater.post("displacement", [0.3, 0, 0])
+    wait_until(lambda: published[-1] == 0.3)
+    assert ("solved", 0.3) in twin.log and updater.stats().budget_overruns == 0
+
+
+def test_past_its_budget_a_solve_is_abandoned_for_a_newer_command_which_is_solved_next(make_updater):
+    updater, twin, published = make_updater(budget=0.05)
+    twin.started.clear()
+    updater.post("displacement", [5.0, 0, 0])  # would take 5 s
+    twin.started.wait(5)
+    tic = time.monotonic()
+    updater.post("displacement", [0.01, 0, 0])
+    wait_until(lambda: published[-1] == 0.01)
+    assert time.monotonic() - tic < 1.0
+    assert ("cancelled", 5.0) in twin.log and updater.stats().budget_overruns == 1
+    assert updater.stats().last_error == ""  # the newer command solved
+
+
+def test_consecutive_abandonments_double_the_budget_so_a_stream_of_long_solves_is_answered(make_updater):
+    """Every solve needs 0.15 s, a newer command comes every 10 ms, the budget is 0.05 s: the
+    third attempt has 0.2 s and finishes."""
+    updater, twin, published = make_updater(budget=0.05)
+    stop = threading.Event()
+
+    def stream():
+        while not stop.is_set():
+            updater.post("displacement", [0.15, 0, 0])
+            time.sleep(0.01)
+
+    thread = threading.Thread(target=stream)
+    thread.start()
+    try:
+        wait_until(lambda: ("solved", 0.15) in twin.log, timeout=5.0)
+    finally:
+        stop.set()
+        thread.join()
+    first = twin.log.index(("solved", 0.15))
+    assert twin.log[first - 2:first] == [("cancelled", 0.15)] * 2  # after 0.05 s and 0.1 s
+    assert updater.stats().budget_overruns >= 2
+
+
+def test_reset_pre_empts_a_running_solve_and_answers_at_once(make_updater):
+    updater, twin, published = make_updater(budget=0.0)  # no budget: only reset can stop it
+    twin.started.clear()
+    updater.post("displacement", [30.0, 0, 0])
+    twin.started.wait(5)
+    answers = []
+    tic = time.monotonic()
+    updater.reset(lambda ok, text: answers.append((ok, text, time.monotonic() - tic)))
+    wait_until(lambda: answers)
+    ok, text, seconds = answers[0]
+    assert ok and "reset" in text and seconds < 1.0
+    assert twin.resets == 1 and ("cancelled", 30.0) in twin.log
+    assert published[-1] == 0.0  # the zero command, solved after the reset
+    assert updater.stats().budget_overruns == 0  # a pre-emption is no overrun
+
+
+def test_skipped_ticks_count_only_periods_a_solve_really_outlasted(make_updater):
+    updater, twin, published = make_updater(budget=0.0, event_driven=False)
+    period = 0.02
+    for _ in range(20):  # idle: one tick at a time, nothing to solve
+        updater.tick()
+        time.sleep(period)
+    assert updater.stats().skipped_ticks == 0
+    updater.post("displacement", [1.0, 0, 0])
+    twin.started.clear()
+    updater.tick()
+    twin.started.wait(5)
+    for _ in range(10):  # ten ticks while the 1 s solve runs
+        time.sleep(period)
+        updater.tick()
+    wait_until(lambda: updater.stats().skipped_ticks > 0)
+    assert published[-1] == 1.0
+    assert updater.stats().skipped_ticks == 9  # the first of them is the next update
