@@ -61,6 +61,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
     # Non-ROS dependencies only. rclpy and the message packages come from the ROS
     # install (colcon) or from requirements-ros.txt (venv, tools/setup.sh); PyPI
