@@ -1,4 +1,5 @@
-"""Command line: ``dea-twin curve``, ``solve``, ``run``, ``demo``, ``replay``, ``plot``, ``study``, ``calibrate``.
+"""Command line: ``dea-twin curve``, ``solve``, ``run``, ``demo``, ``replay``, ``plot``, ``study``, ``calibrate``,
+``rom``.
 
 Thin layer over :class:`~dea_array_twin.model.twin.ArrayTwin`: parses arguments, runs the solves, prints
 a labelled table (mm, N, pF) or JSON in SI units.  Exit codes: 0 ok, 1 the solver
@@ -70,7 +71,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the twin node plus the example wave controller, printing what they do")
     demo.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
     demo.add_argument("--duration", type=float, default=20.0, help="seconds to run (default 20; 0 = until Ctrl-C)")
-    from . import calibrate, plot, replay, study
+    from . import calibrate, plot, replay, rom, study
 
     study.add_arguments(sub.add_parser(
         "study", help="the paper's studies: coupled curves, coupling indices (eqs. 13-16) and the five "
@@ -82,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
         "replay", help="re-run the twin on a recorded bag's commands (MCAP + CSV out, FIT against recorded "
                        "outputs), or republish them with --realtime"))
     plot.add_arguments(sub.add_parser("plot", help="plot commands, forces and capacitances of a bag to a PNG"))
+    rom.add_arguments(sub.add_parser(
+        "rom", help="reduced-order model (a kHz twin): train one from FE snapshots and validate it, or show a file"))
     rec = sub.add_parser("bag-recover", help="complete copy of an MCAP file whose writer was killed")
     rec.add_argument("src", help="the killed recording")
     rec.add_argument("dst", help="where to write the recovered file")
@@ -178,10 +181,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from ..bag.recover import main as recover_main
 
         return recover_main([args.src, args.dst])
-    if args.command in ("replay", "plot", "study", "calibrate"):
-        from . import calibrate, plot, replay, study
+    if args.command in ("replay", "plot", "study", "calibrate", "rom"):
+        from . import calibrate, plot, replay, rom, study
 
-        module = {"replay": replay, "plot": plot, "study": study, "calibrate": calibrate}[args.command]
+        module = {"replay": replay, "plot": plot, "study": study, "calibrate": calibrate, "rom": rom}[args.command]
         return module.run_from_args(args)
     try:
         cfg = load_config(args.config)

@@ -25,8 +25,8 @@ from typing import Sequence
 
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
+from ..parallel import ExecutorError, run_tasks
 from ..studies import tasks as study
-from ..studies.parallel import ExecutorError, run_tasks
 from ..studies.tasks import CurveFailure, CurveResult, CurveTask
 from .argtypes import float_list
 

@@ -1,13 +1,13 @@
 """The paper's studies: coupled curves, coupling indices (eqs. 13-16), parameter sweeps, figures.
 
-Holds the study tasks and their evaluation (:mod:`.tasks`), the executors that run
-them serially, on local processes or on a Dask cluster (:mod:`.parallel`, Dask
-imported when asked for) and the figures (:mod:`.plots`, matplotlib imported when it
-draws).  May import the model and the config file reader; not ROS, bags, replay or
-calibration.
+Holds the study tasks and their evaluation (:mod:`.tasks`) and the figures
+(:mod:`.plots`, matplotlib imported when it draws); the executors that run the tasks
+serially, on local processes or on a Dask cluster are :mod:`dea_array_twin.parallel`
+(re-exported here).  May import the model, the config file reader and the executors;
+not ROS, bags, replay, calibration or the ROM tools.
 """
 
-from .parallel import ExecutorError, run_tasks
+from ..parallel import ExecutorError, run_tasks
 from .tasks import (
     SWEEPS,
     CouplingIndices,

@@ -18,8 +18,8 @@ from conftest import COARSE
 from dea_array_twin import ArrayConfig, ArrayTwin
 from dea_array_twin.cli import study as study_cli
 from dea_array_twin.model.geometry import unit_centres
+from dea_array_twin.parallel import ExecutorError, run_tasks
 from dea_array_twin.studies import tasks as study
-from dea_array_twin.studies.parallel import ExecutorError, run_tasks
 from dea_array_twin.studies.tasks import (
     SWEEPS,
     CurveResult,

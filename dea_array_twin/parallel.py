@@ -1,8 +1,10 @@
 """Run independent tasks in this process, on local worker processes or on a Dask cluster.
 
-Studies are lists of independent, deterministic tasks (:class:`~.tasks.CurveTask`), so
-the executor only decides where they run: results come back in task order and are
-identical whichever executor ran them.
+Studies (:class:`~dea_array_twin.studies.tasks.CurveTask`) and ROM training snapshots
+(:mod:`dea_array_twin.rom.train`) are lists of independent, deterministic tasks, so the
+executor only decides where they run: results come back in task order and are
+identical whichever executor ran them.  Imports nothing of the package, so every
+tool layer can use it.
 """
 
 from __future__ import annotations

@@ -1,0 +1,482 @@
+"""The reduced model's energy, gradient and Hessian summed over its sampled quadrature points.
+
+The reduced state is ``x = x_ref + sum_k d_k L_k + V q + W w`` (:mod:`.reduced`): the
+flat pre-stretched membrane, one lifting vector per driven indenter, the POD basis
+``V`` and, for the error indicator only, enrichment vectors ``W`` (``w = 0`` in the
+state).  At a quadrature point ``p`` the deformation gradient is linear in the
+coefficients, ``F_p = A_p [1, d, q]`` (``A_p``: 6 x (1 + nd + r), :func:`point_maps`),
+and the hyper-reduced energy is the weighted sum (energy-conserving sampling and
+weighting, ECSW)
+
+    E(d, q, m) = sum_p xi_p Psi(C_p, m_u(p)),       xi_p >= 0 (t0 times area times ECSW weight),
+
+with ``Psi = Y(tr C + 1/det C - 3) - m det C`` (:mod:`.material`) and ``m_u`` the
+Maxwell coefficient ``0.5 eps (V_u/t0)^2`` of the point's unit.  Its gradient is
+
+    dE/dz_j = sum_p xi_p P_p : A_p[:, j],        P = F S (first Piola-Kirchhoff, 3x2),
+    dE/dm_u = - sum_(p in u) xi_p det C_p,
+
+so ``dE/dq`` is the reduced residual, ``dE/dd_k`` the energy-consistent indenter force
+(paper eq. 10) and ``-dE/dm_u`` the electrode's ``t0 integral det C dA0``, which is the
+capacitance (eq. 7) times ``t0^2 / eps``.  The Hessian is
+
+    d2E/dz_i dz_j = sum_p xi_p A_p[:, i]^T D_p A_p[:, j],
+    D = B^T H B + S (x) I_3,   B = dc/dF (3 x 6),  H = d2Psi/dc2,
+    d2E/dz_j dm_u = - sum_(p in u) xi_p ddet/dF : A_p[:, j].
+
+:func:`evaluate` (numba, one call per update) gives energy, gradient, the gradient
+along ``W``, the largest ``det C`` per unit and the smallest principal Cauchy stress
+over the evaluated points; :func:`hessian` (numpy, when the tangent is refreshed)
+gives the full Hessian over ``[q, d, w]`` and its ``m`` columns.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from .assembly import Discretisation
+from .material import Yeoh, energy_derivatives
+
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy", "fastmath": {"reassoc", "contract"}}
+
+
+def point_maps(disc: Discretisation, elements: np.ndarray, points: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """``A_p``: the deformation gradient at points ``(elements[i], points[i])`` of each column of ``vectors``.
+
+    Parameters
+    ----------
+    disc : Discretisation
+    elements, points : ndarray of int, shape (n,)
+        Element and quadrature point of each sampled point.
+    vectors : ndarray, shape (n_dofs, k)
+        Position vectors (node-major, 3 per node).
+
+    Returns
+    -------
+    ndarray, shape (n, 6, k)
+        ``F[i, alpha] = sum_a vectors[3 n_a + i] dN_a/dX_alpha``, flattened as ``2 i + alpha``.
+    """
+    nodes = disc.mesh.elements[elements]  # (n, nen)
+    u = vectors.reshape(-1, 3, vectors.shape[1])[nodes]  # (n, nen, 3, k)
+    grad = disc.grad[elements, points]  # (n, nen, 2)
+    f = np.einsum("naik,nab->nibk", u, grad)  # (n, 3, 2, k)
+    return np.ascontiguousarray(f.reshape(len(elements), 6, vectors.shape[1]))
+
+
+@numba.njit(inline="always", **_JIT)
+def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max):
+    np_, _, nc = fmap.shape
+    nw = wmap.shape[2]
+    grad[:] = 0.0
+    grad_m[:] = 0.0
+    grad_w[:] = 0.0
+    det_max[:] = 0.0
+    energy = 0.0
+    sigma_min = np.inf
+    f = np.empty(6)
+    pk = np.empty(6)
+    for p in range(np_):
+        for c in range(6):
+            acc = 0.0
+            for j in range(nc):
+                acc += fmap[p, c, j] * z[j]
+            f[c] = acc
+        c0 = f[0] * f[0] + f[2] * f[2] + f[4] * f[4]
+        c1 = f[1] * f[1] + f[3] * f[3] + f[5] * f[5]
+        c2 = f[0] * f[1] + f[2] * f[3] + f[4] * f[5]
+        det = c0 * c1 - c2 * c2
+        u = unit[p]
+        k = maxwell[u] if u >= 0 else 0.0
+        xv = c0 + c1 + 1.0 / det - 3.0
+        dy = c10 + xv * (2.0 * c20 + 3.0 * c30 * xv)
+        a = dy / det**2
+        g0 = dy - (a + k) * c1
+        g1 = dy - (a + k) * c0
+        g2 = 2.0 * (a + k) * c2
+        s00, s11, s01 = 2.0 * g0, 2.0 * g1, g2
+        if u >= 0 and det > det_max[u]:
+            det_max[u] = det
+        if not held[p]:  # smallest in-plane principal Cauchy stress: eigenvalues of C S
+            m00 = c0 * s00 + c2 * s01
+            m01 = c0 * s01 + c2 * s11
+            m10 = c2 * s00 + c1 * s01
+            m11 = c2 * s01 + c1 * s11
+            half = 0.5 * (m00 + m11)
+            disc = (0.5 * (m00 - m11)) ** 2 + m01 * m10
+            low = half - np.sqrt(max(disc, 0.0))
+            if low < sigma_min:
+                sigma_min = low
+        w = xi[p]
+        if w == 0.0:  # a monitor point: read, not summed
+            continue
+        energy += w * (xv * (c10 + xv * (c20 + xv * c30)) - k * det)
+        for i in range(3):  # P = F S, times the weight
+            pk[2 * i] = w * (f[2 * i] * s00 + f[2 * i + 1] * s01)
+            pk[2 * i + 1] = w * (f[2 * i] * s01 + f[2 * i + 1] * s11)
+        for c in range(6):
+            pc = pk[c]
+            for j in range(nc):
+                grad[j] += pc * fmap[p, c, j]
+            for j in range(nw):
+                grad_w[j] += pc * wmap[p, c, j]
+        if u >= 0:
+            grad_m[u] -= w * det
+    return energy, sigma_min
+
+
+@numba.njit(**_JIT)
+def _evaluate(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max):
+    return _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max)
+
+
+@numba.njit(inline="always", **_JIT)
+def _output_change(out_q, output_scale, dq):
+    """Largest change of an output (relative to its scale) that the correction ``dq`` makes."""
+    worst = 0.0
+    for i in range(out_q.shape[0]):
+        acc = 0.0
+        for j in range(dq.size):
+            acc += out_q[i, j] * dq[j]
+        worst = max(worst, abs(acc) / output_scale[i])
+    return worst
+
+
+@numba.njit(**_JIT)
+def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
+            output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m,
+            grad_w, det_max, m1, result, info):
+    nd = driven.size
+    nu = v1.size
+    nc = z.size
+    r = nc - 1 - nd
+    dp = np.empty(nd + nu)
+    for i in range(nd):
+        dp[i] = d1[driven[i]] - z[1 + i]
+        z[1 + i] = d1[driven[i]]
+    for i in range(nu):
+        m1[i] = maxwell_factor * v1[i] * v1[i]
+        dp[nd + i] = m1[i] - m0[i]
+    for i in range(r):  # predictor: q += dq/dp (p1 - p0)
+        acc = 0.0
+        for j in range(nd + nu):
+            acc += sensitivity[i, j] * dp[j]
+        z[1 + nd + i] += acc
+    energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w, det_max)
+    dq = np.empty(r)
+    for i in range(r):  # Newton correction with the last refreshed H_qq
+        acc = 0.0
+        for j in range(r):
+            acc -= hqq_inv[i, j] * grad[1 + nd + j]
+        dq[i] = acc
+    big = _output_change(out_q, output_scale, dq)
+    evals = 1
+    slow = 0.0
+    if big > second_step:  # second evaluation, H_qq^-1 corrected by one Broyden update
+        g1 = grad[1 + nd:].copy()
+        for i in range(r):
+            z[1 + nd + i] += dq[i]
+        energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w,
+                                      det_max)
+        evals = 2
+        a = hqq_inv @ grad[1 + nd:]
+        by = hqq_inv @ (grad[1 + nd:] - g1)
+        denom = dq @ by
+        coef = (dq @ a) / denom if denom != 0.0 else 0.0
+        for i in range(r):
+            dq[i] = -a[i] - (dq[i] - by[i]) * coef
+        last = _output_change(out_q, output_scale, dq)
+        if last > 0.1 * big:
+            slow = 1.0
+        big = last
+    res = 0.0
+    de = 0.0
+    for i in range(r):
+        z[1 + nd + i] += dq[i]
+        res = max(res, abs(grad[1 + nd + i]))
+        de += grad[1 + nd + i] * dq[i]
+    # outputs o = (F_driven, C) = (dE/dd, -(eps/t0^2) dE/dm) + dO/dq dq
+    result[0, :] = 0.0
+    for i in range(nd + nu):
+        acc = grad[1 + i] if i < nd else -cap_factor * grad_m[i - nd]
+        for j in range(r):
+            acc += out_q[i, j] * dq[j]
+        if i < nd:
+            result[0, driven[i]] = acc
+        else:
+            result[1, i - nd] = acc
+    for u in range(nu):
+        acc = 0.0
+        for j in range(nc):
+            acc += centre[u, j] * z[j]
+        result[2, u] = acc
+        result[3, u] = acc  # displacement: the centre deflection of a free unit
+        result[4, u] = np.sqrt(det_max[u]) * abs(v1[u]) / thickness
+    for i in range(nd):
+        result[3, driven[i]] = d1[driven[i]]
+    nw = grad_w.size
+    gw = grad_w.copy()
+    for i in range(nw):
+        acc = 0.0
+        for j in range(r):
+            acc += h_wq[i, j] * dq[j]
+        gw[i] += acc
+    worst = 0.0
+    for i in range(indicator.shape[0]):
+        acc = 0.0
+        for j in range(nw):
+            acc += indicator[i, j] * gw[j]
+        worst = max(worst, abs(acc))
+    info[0] = energy + 0.5 * de
+    info[1] = sigma_min
+    info[2] = worst
+    info[3] = res
+    info[4] = evals
+    info[5] = slow
+    info[6] = big
+
+
+@numba.njit(**_JIT)
+def _classify(d1, v1, limit, lo, hi, vlo, vhi, driven, maxwell_factor, tangent_at, refresh_step):
+    """0: inside the envelope, 1: not finite, 2: beyond max_displacement, 3: outside the envelope;
+    and whether the command has moved ``refresh_step`` from where the tangent was refreshed."""
+    nd = driven.size
+    for u in range(v1.size):
+        if not (np.isfinite(d1[u]) and np.isfinite(v1[u])):
+            return 1, False
+        if abs(d1[u]) > limit:
+            return 2, False
+    code = 0
+    for u in range(v1.size):
+        if d1[u] < lo[u] or d1[u] > hi[u] or v1[u] < vlo[u] or v1[u] > vhi[u]:
+            code = 3
+    far = False
+    for i in range(nd):
+        far = far or abs(d1[driven[i]] - tangent_at[i]) > refresh_step[i]
+    for u in range(v1.size):
+        far = far or abs(maxwell_factor * v1[u] * v1[u] - tangent_at[nd + u]) > refresh_step[nd + u]
+    return code, far
+
+
+def classify(d1: np.ndarray, v1: np.ndarray, limit: float, bounds: tuple, tangent_at: np.ndarray,
+             refresh_step: np.ndarray) -> tuple[int, bool]:
+    """Check a command: ``(code, far)``, code 0 inside the envelope, 1 not finite, 2 beyond
+    ``limit`` [m], 3 outside the envelope; ``far`` when some input moved more than ``refresh_step``
+    from ``tangent_at`` (driven displacements, then Maxwell coefficients).
+
+    ``bounds`` is ``(lo, hi, vlo, vhi, driven, maxwell_factor)``: displacement bounds per
+    unit (+-inf for free units), voltage bounds, driven unit indices and ``eps / (2 t0^2)``.
+    """
+    return _classify(d1, v1, limit, *bounds[:5], bounds[5], tangent_at, refresh_step)
+
+
+def update(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.ndarray, layout: tuple,
+           tangent: tuple, cap_factor: float, second_step: float, buffers: tuple, m1: np.ndarray,
+           result: np.ndarray, info: np.ndarray) -> None:
+    """One update from state ``z = [1, d0, q0]`` (at Maxwell coefficients ``m0``) to ``(d1, v1)``, in place.
+
+    Predictor ``q += dq/dp (p1 - p0)``, one evaluation, the Newton correction with
+    ``H_qq^-1``; if the correction changes an output by more than ``second_step`` of its
+    scale, a second evaluation and a Broyden-corrected second step (see :mod:`.reduced_twin`).
+
+    Parameters
+    ----------
+    points : tuple
+        ``(fmap, wmap, xi, unit, held, c10, c20, c30)`` as for :func:`evaluate`.
+    d1, v1 : ndarray, shape (n_units,)
+        The command: displacements [m] (used for driven units), voltages [V].
+    layout : tuple
+        ``(driven, centre, maxwell_factor, thickness, output_scale)``: driven unit
+        indices, the rows of ``[1, d, q]`` giving each unit's centre deflection,
+        ``eps / (2 t0^2)``, ``t0``, and the scale of each output (driven forces [N],
+        capacitances [F]).
+    tangent : tuple
+        ``(dq/dp, H_qq^-1, dO/dq, H_wq, indicator matrix)`` of the last refresh.
+    cap_factor : float
+        ``eps / t0^2`` [F/m^3]: capacitance per ``-dE/dm``.
+    buffers : tuple
+        ``(grad, grad_m, grad_w, det_max)`` as for :func:`evaluate`, filled at the last evaluation.
+    m1 : ndarray, shape (n_units,)
+        Filled with the new Maxwell coefficients [Pa].
+    result : ndarray, shape (5, n_units)
+        Filled with force [N] (0 for free units), capacitance [F], centre deflection
+        [m], displacement [m] (centre deflection for free units) and peak field [V/m].
+    info : ndarray, shape (7,)
+        Filled with energy [J], smallest principal stress [Pa], indicator, largest
+        reduced residual [N], evaluations, 1.0 if the second step contracted slowly,
+        and the relative output change of the last correction (how far from converged
+        the evaluated state was).
+    """
+    _update(*points, z, m0, d1, v1, *layout, *tangent, cap_factor, second_step, *buffers, m1, result, info)
+
+
+def evaluate(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, held: np.ndarray,
+             z: np.ndarray, maxwell: np.ndarray, yeoh: Yeoh, out: tuple) -> tuple[float, float]:
+    """Energy [J] and smallest principal Cauchy stress [Pa]; fills ``out = (grad, grad_m, grad_w, det_max)``.
+
+    Parameters
+    ----------
+    fmap : ndarray, shape (n_points, 6, nc)
+        ``A_p`` over ``[1, d, q]``.
+    wmap : ndarray, shape (n_points, 6, nw)
+        ``A_p`` over the enrichment vectors ``W``.
+    xi : ndarray, shape (n_points,)
+        Weights [m^3] (``t0`` times area times ECSW weight); 0 for monitor points.
+    unit : ndarray of int, shape (n_points,)
+        The point's unit, -1 on passive membrane.
+    held : ndarray of bool, shape (n_points,)
+        The point lies in a held indenter disk (left out of the smallest stress).
+    z : ndarray, shape (nc,)
+        ``[1, d, q]``.
+    maxwell : ndarray, shape (n_units,)
+        Maxwell coefficient per unit [Pa].
+    yeoh : Yeoh
+    out : tuple of ndarray
+        ``grad`` (nc; entry 0 is the derivative along the constant column, unused),
+        ``grad_m`` (n_units), ``grad_w`` (nw), ``det_max`` (n_units; largest ``det C``
+        over the unit's points, sampled and monitor).
+    """
+    grad, grad_m, grad_w, det_max = out
+    return _evaluate(fmap, wmap, xi, unit, held, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30,
+                     grad, grad_m, grad_w, det_max)
+
+
+@numba.njit(**_JIT)
+def _hessian(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, hz, hm):
+    np_, _, nc = fmap.shape
+    nw = wmap.shape[2]
+    k = nc + nw
+    hz[:, :] = 0.0
+    hm[:, :] = 0.0
+    f = np.empty(6)
+    a = np.empty((6, k))
+    da = np.empty((6, k))
+    d = np.empty((6, 6))
+    b = np.zeros((3, 6))
+    h = np.empty((3, 3))
+    for p in range(np_):
+        w = xi[p]
+        if w == 0.0:
+            continue
+        for c in range(6):
+            for j in range(nc):
+                a[c, j] = fmap[p, c, j]
+            for j in range(nw):
+                a[c, nc + j] = wmap[p, c, j]
+            acc = 0.0
+            for j in range(nc):
+                acc += fmap[p, c, j] * z[j]
+            f[c] = acc
+        c0 = f[0] * f[0] + f[2] * f[2] + f[4] * f[4]
+        c1 = f[1] * f[1] + f[3] * f[3] + f[5] * f[5]
+        c2 = f[0] * f[1] + f[2] * f[3] + f[4] * f[5]
+        det = c0 * c1 - c2 * c2
+        u = unit[p]
+        km = maxwell[u] if u >= 0 else 0.0
+        xv = c0 + c1 + 1.0 / det - 3.0
+        dy = c10 + xv * (2.0 * c20 + 3.0 * c30 * xv)
+        ddy = 2.0 * c20 + 6.0 * c30 * xv
+        inv2 = 1.0 / det**2
+        g0 = dy - (dy * inv2 + km) * c1
+        g1 = dy - (dy * inv2 + km) * c0
+        g2 = 2.0 * (dy * inv2 + km) * c2
+        # H = d2Psi/dc2 (material.energy_derivatives)
+        dj0, dj1, dj2 = c1, c0, -2.0 * c2
+        di0, di1, di2 = 1.0 - inv2 * dj0, 1.0 - inv2 * dj1, -inv2 * dj2
+        bb = 2.0 * dy * inv2 / det
+        mm = dy * inv2 + km
+        h[0, 0] = ddy * di0 * di0 + bb * dj0 * dj0
+        h[1, 1] = ddy * di1 * di1 + bb * dj1 * dj1
+        h[2, 2] = ddy * di2 * di2 + bb * dj2 * dj2 + 2.0 * mm
+        h[0, 1] = h[1, 0] = ddy * di0 * di1 + bb * dj0 * dj1 - mm
+        h[0, 2] = h[2, 0] = ddy * di0 * di2 + bb * dj0 * dj2
+        h[1, 2] = h[2, 1] = ddy * di1 * di2 + bb * dj1 * dj2
+        # B = dc/dF, columns 2 i + alpha
+        for i in range(3):
+            b[0, 2 * i] = 2.0 * f[2 * i]
+            b[1, 2 * i + 1] = 2.0 * f[2 * i + 1]
+            b[2, 2 * i] = f[2 * i + 1]
+            b[2, 2 * i + 1] = f[2 * i]
+        s00, s11, s01 = 2.0 * g0, 2.0 * g1, g2
+        for c in range(6):
+            for e in range(6):
+                acc = 0.0
+                for v in range(3):
+                    for x in range(3):
+                        acc += b[v, c] * h[v, x] * b[x, e]
+                d[c, e] = acc * w
+        for i in range(3):
+            d[2 * i, 2 * i] += w * s00
+            d[2 * i + 1, 2 * i + 1] += w * s11
+            d[2 * i, 2 * i + 1] += w * s01
+            d[2 * i + 1, 2 * i] += w * s01
+        for c in range(6):
+            for j in range(k):
+                acc = 0.0
+                for e in range(6):
+                    acc += d[c, e] * a[e, j]
+                da[c, j] = acc
+        for i in range(k):
+            for j in range(i, k):
+                acc = 0.0
+                for c in range(6):
+                    acc += a[c, i] * da[c, j]
+                hz[i, j] += acc
+        if u >= 0:  # ddet/dF = c1 dc0/dF + c0 dc1/dF - 2 c2 dc2/dF
+            for j in range(k):
+                acc = 0.0
+                for c in range(6):
+                    acc += (c1 * b[0, c] + c0 * b[1, c] - 2.0 * c2 * b[2, c]) * a[c, j]
+                hm[j, u] -= w * acc
+    for i in range(k):
+        for j in range(i):
+            hz[i, j] = hz[j, i]
+
+
+def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, z: np.ndarray,
+            maxwell: np.ndarray, yeoh: Yeoh, n_units: int) -> tuple[np.ndarray, np.ndarray]:
+    """Hessian of the hyper-reduced energy over ``[1, d, q, w]`` and its mixed ``m`` derivatives.
+
+    Returns
+    -------
+    h : ndarray, shape (nc + nw, nc + nw)
+        ``d2E/dz_i dz_j`` (row and column 0, the constant, are zero).
+    h_m : ndarray, shape (nc + nw, n_units)
+        ``d2E/dz_j dm_u``.
+    """
+    k = fmap.shape[2] + wmap.shape[2]
+    hz, hm = np.empty((k, k)), np.empty((k, n_units))
+    _hessian(fmap, wmap, xi, unit, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, hz, hm)
+    return hz, hm
+
+
+def hessian_reference(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, z: np.ndarray,
+                      maxwell: np.ndarray, yeoh: Yeoh, n_units: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`hessian` in numpy, from :func:`.material.energy_derivatives` (the tests' reference)."""
+    live = xi > 0.0
+    a = np.concatenate([fmap[live], wmap[live]], axis=2)  # (n, 6, k)
+    w, u = xi[live], unit[live]
+    f = a[:, :, :fmap.shape[2]] @ z  # (n, 6)
+    f1, f2 = f[:, 0::2], f[:, 1::2]  # columns of F (3 each)
+    c = np.stack([np.sum(f1 * f1, 1), np.sum(f2 * f2, 1), np.sum(f1 * f2, 1)], axis=1)
+    m = np.where(u >= 0, maxwell[np.maximum(u, 0)], 0.0)
+    g, h = energy_derivatives(c, yeoh, m)
+    # B = dc/dF: rows c0, c1, c2; columns (i, alpha) -> 2 i + alpha.
+    b = np.zeros((len(w), 3, 6))
+    b[:, 0, 0::2] = 2.0 * f1
+    b[:, 1, 1::2] = 2.0 * f2
+    b[:, 2, 0::2] = f2
+    b[:, 2, 1::2] = f1
+    d = np.einsum("nvc,nvw,nwe->nce", b, h, b)
+    s = np.stack([2.0 * g[:, 0], g[:, 2], g[:, 2], 2.0 * g[:, 1]], axis=1).reshape(-1, 2, 2)
+    for i in range(3):
+        d[:, 2 * i:2 * i + 2, 2 * i:2 * i + 2] += s
+    wa = (w[:, None, None] * (d @ a)).reshape(-1, a.shape[2])
+    hz = a.reshape(-1, a.shape[2]).T @ wa
+    # ddet/dF with det = c0 c1 - c2^2.
+    ddet = c[:, 1, None] * b[:, 0] + c[:, 0, None] * b[:, 1] - 2.0 * c[:, 2, None] * b[:, 2]  # (n, 6)
+    col = -w[:, None] * np.einsum("nc,nck->nk", ddet, a)
+    hm = np.zeros((a.shape[2], n_units))
+    on = u >= 0
+    np.add.at(hm.T, u[on], col[on])
+    return hz, hm

@@ -1,0 +1,103 @@
+"""The reduced model's building blocks: sparse non-negative weights (ECSW) and the hyper-reduced
+energy's gradient and Hessian (model/rom_kernels.py) against finite differences and numpy."""
+
+import numpy as np
+import pytest
+from conftest import COARSE
+
+from dea_array_twin import ArrayConfig
+from dea_array_twin.model import rom_kernels
+from dea_array_twin.model.ecsw import sparse_nnls
+from dea_array_twin.model.membrane import MembraneModel
+
+
+def test_sparse_nnls_finds_a_sparse_quadrature_and_a_positive_quadrature_rule():
+    """b made of 12 of 300 columns: the greedy active set finds those columns (and at most a few more).
+    Integrals of 10 polynomials over 300 cells: a positive rule of at most 10 of the cells."""
+    rng = np.random.default_rng(4)
+    g = rng.random((200, 300))
+    truth = np.zeros(300)
+    support = np.sort(rng.choice(300, 12, replace=False))
+    truth[support] = rng.uniform(0.5, 2.0, 12)
+    sparse = sparse_nnls(g, g @ truth, 1e-10)
+    assert sparse.relative_error <= 1e-10
+    assert set(support) <= set(sparse.index) and sparse.index.size <= 16 and np.all(sparse.weight > 0)
+    np.testing.assert_allclose(g[:, sparse.index] @ sparse.weight, g @ truth, rtol=1e-9)
+    # A quadrature: integrals of the Legendre polynomials P_0..P_9 over 300 equal cells of [-1, 1].
+    # A positive rule with as many points as conditions exists (Caratheodory), and ECSW finds one.
+    x = np.linspace(-1.0, 1.0, 300)
+    cells = np.polynomial.legendre.legvander(x, 9).T * (2.0 / 300)
+    b = cells.sum(axis=1)
+    rule = sparse_nnls(cells, b, 1e-8)
+    assert rule.relative_error <= 1e-8 and np.all(rule.weight > 0) and rule.index.size <= 10
+    assert rule.weight.sum() * 2.0 / 300 == pytest.approx(2.0, rel=1e-8)  # the integral of P_0 = 1
+    with pytest.raises(ValueError, match="tol"):
+        sparse_nnls(cells, b, 0.0)
+
+
+@pytest.fixture(scope="module")
+def reduced_points():
+    """Point maps of 60 quadrature points of the coarse array over [1, d, q] (a flat state, 2 lifting-like
+    and 5 random vectors) and 3 enrichment vectors, with random positive weights."""
+    model = MembraneModel(ArrayConfig(**COARSE))
+    rng = np.random.default_rng(5)
+    ne, nq = model.disc.weight.shape
+    flat = np.flatnonzero(rng.permutation(ne * nq) < 60)
+    elements, points = np.divmod(flat, nq)
+    vectors = np.hstack([model.flat_state()[:, None], 1e-3 * rng.normal(size=(model.disc.n_dofs, 7))])
+    fmap = rom_kernels.point_maps(model.disc, elements, points, vectors)
+    wmap = rom_kernels.point_maps(model.disc, elements, points, 1e-3 * rng.normal(size=(model.disc.n_dofs, 3)))
+    xi = model.thickness * model.disc.weight[elements, points] * rng.uniform(0.5, 2.0, elements.size)
+    unit = model.mesh.element_unit[elements]
+    return model, fmap, wmap, xi, unit
+
+
+def test_reduced_gradient_is_the_derivative_of_the_reduced_energy(reduced_points):
+    """dE/dz (every column but the constant) and dE/dm_u = -sum xi det C by central differences."""
+    model, fmap, wmap, xi, unit = reduced_points
+    held = np.zeros(xi.size, dtype=bool)
+    z = np.array([1.0, 0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.2])
+    maxwell = np.array([2e4, 3e4, 0.0])
+
+    def energy(zz, mm):
+        out = (np.empty(8), np.empty(3), np.empty(3), np.empty(3))
+        e, _ = rom_kernels.evaluate(fmap, wmap, xi, unit, held, zz, mm, model.yeoh, out)
+        return e, out
+
+    _, (grad, grad_m, grad_w, _) = energy(z, maxwell)
+    for j in range(1, 8):
+        h = 1e-6
+        step = h * np.eye(8)[j]
+        fd = (energy(z + step, maxwell)[0] - energy(z - step, maxwell)[0]) / (2 * h)
+        assert grad[j] == pytest.approx(fd, rel=1e-6, abs=1e-9 * np.abs(grad).max())
+    for u in range(3):
+        dm = 10.0
+        step = dm * np.eye(3)[u]
+        fd = (energy(z, maxwell + step)[0] - energy(z, maxwell - step)[0]) / (2 * dm)
+        assert grad_m[u] == pytest.approx(fd, rel=1e-6, abs=1e-15)
+    assert np.abs(grad_m).max() > 0 and np.abs(grad_w).max() > 0
+
+
+def test_compiled_reduced_hessian_equals_the_numpy_reference_and_the_gradient_difference(reduced_points):
+    model, fmap, wmap, xi, unit = reduced_points
+    held = np.zeros(xi.size, dtype=bool)
+    z = np.array([1.0, 0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.2])
+    maxwell = np.array([2e4, 3e4, 0.0])
+    hz, hm = rom_kernels.hessian(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3)
+    hz_ref, hm_ref = rom_kernels.hessian_reference(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3)
+    assert np.abs(hz - hz_ref).max() <= 1e-12 * np.abs(hz_ref).max()
+    assert np.abs(hm - hm_ref).max() <= 1e-12 * np.abs(hm_ref).max()
+
+    def gradient(zz, mm):
+        out = (np.empty(8), np.empty(3), np.empty(3), np.empty(3))
+        rom_kernels.evaluate(fmap, wmap, xi, unit, held, zz, mm, model.yeoh, out)
+        return np.concatenate([out[0], out[2]]), out[1]
+
+    h = 1e-6
+    for j in (1, 4, 7):
+        step = h * np.eye(8)[j]
+        fd = (gradient(z + step, maxwell)[0] - gradient(z - step, maxwell)[0]) / (2 * h)
+        np.testing.assert_allclose(hz[j, 1:], fd[1:], rtol=1e-5, atol=1e-7 * np.abs(hz).max())
+    dm = 10.0
+    fd = (gradient(z, maxwell + dm * np.eye(3)[1])[0] - gradient(z, maxwell - dm * np.eye(3)[1])[0]) / (2 * dm)
+    np.testing.assert_allclose(hm[1:, 1], fd[1:], rtol=1e-5, atol=1e-7 * np.abs(hm).max())

@@ -1,0 +1,180 @@
+"""The reduced twin (a hyper-reduced model trained from the FE) against the FE it was trained from.
+
+One small ROM of the coarse 1-by-3 array is trained per module (about 25 FE snapshots):
+every unit driven, d in [0, 8] mm, units 2 and 3 up to 2500 V and unit 1 never
+energised, so that "voltage on an untrained unit" is a command outside its envelope.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from conftest import COARSE
+
+from dea_array_twin import ArrayConfig, ArrayTwin
+from dea_array_twin.model.reduced import Envelope, RomMismatchError
+from dea_array_twin.model.reduced_twin import ReducedTwin
+from dea_array_twin.rom.train import train
+from dea_array_twin.romfile import RomFileError, load_rom, save_rom
+
+TOLERANCE = 2e-3
+D_MAX, V_MAX = 0.008, 2500.0
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return ArrayConfig(**COARSE)
+
+
+@pytest.fixture(scope="module")
+def trained(cfg):
+    envelope = Envelope(("driven",) * 3, np.zeros(3), np.full(3, D_MAX), np.zeros(3), np.array([0.0, V_MAX, V_MAX]))
+    return train(cfg, envelope, n_snapshots=26, n_modes=14, tolerance=TOLERANCE, n_validation=6, seed=3)
+
+
+@pytest.fixture(scope="module")
+def rom(trained):
+    return trained.rom
+
+
+def _errors(res, fe, rom):
+    """Force error over each unit's force reference and relative capacitance error, largest over units."""
+    return (float(np.max(np.abs(res.force - fe.force) / rom.force_reference)),
+            float(np.max(np.abs(res.capacitance - fe.capacitance) / fe.capacitance)))
+
+
+def test_training_validates_within_the_tolerance_on_held_out_commands(trained):
+    table = trained.rom.validation
+    assert table["commands"] == 6 and table["snapshots"] == 26
+    assert table["force_error_max"] <= TOLERANCE and table["capacitance_error_max"] <= TOLERANCE
+    # the errors are real numbers, not zeros from comparing the model with itself
+    assert table["force_error_max"] > 1e-7 and table["capacitance_error_max"] > 1e-8
+
+
+def test_reduced_twin_reproduces_the_fe_on_new_commands(cfg, rom):
+    """Commands of another sample than training and validation: force, capacitance, centre deflection
+    and the recovered field agree with the FE within the tolerance, and the reduced model answered."""
+    twin = ReducedTwin(cfg, rom)
+    fe = ArrayTwin(cfg)
+    d, v = rom.envelope.sample(4, seed=11)
+    for k in range(4):
+        res, ref = twin.solve(d[k], v[k]), fe.solve(d[k], v[k])
+        assert res.fallback == "" and res.error_indicator <= TOLERANCE
+        force_error, cap_error = _errors(res, ref, rom)
+        assert force_error <= TOLERANCE and cap_error <= TOLERANCE
+        np.testing.assert_allclose(res.displacement, d[k])
+        assert np.abs(res.centre_deflection - ref.centre_deflection).max() <= TOLERANCE * D_MAX
+        assert np.abs(res.positions - ref.positions).max() <= TOLERANCE * D_MAX
+        np.testing.assert_allclose(res.delta_capacitance, res.capacitance - fe.model.flat_capacitance)
+    assert twin.updates == 4 and not twin.fallbacks
+
+
+def test_warm_updates_follow_the_fe_along_a_trajectory_with_one_or_two_evaluations(cfg, rom):
+    """0.1 mm steps on every indenter and 20 V steps on units 2 and 3, as a controller would send them."""
+    twin, fe = ReducedTwin(cfg, rom), ArrayTwin(cfg)
+    start_d, start_v = np.array([0.002, 0.004, 0.006]), np.array([0.0, 500.0, 1500.0])
+    worst = 0.0
+    for i in range(40):
+        d = start_d + 1e-4 * i * np.array([1.0, 1.0, -1.0])
+        v = start_v + 20.0 * i * np.array([0.0, 1.0, 1.0])
+        res, ref = twin.solve(d, v), fe.solve(d, v, check_stability=False)
+        assert res.fallback == ""
+        assert i == 0 or res.iterations <= 2
+        worst = max(worst, *_errors(res, ref, rom))
+    assert worst <= TOLERANCE
+
+
+def test_energy_consistent_force_and_capacitance_are_derivatives_of_the_reduced_energy(cfg, rom):
+    """F_k = dE/dd_k (paper eq. 10 as the derivative of the reduced energy at equilibrium) and
+    C_u = -(eps/t0^2) dE/dm_u with m_u = eps V_u^2 / (2 t0^2) (eq. 7), by central differences of
+    the converged reduced energy (each solve from a reset, so Newton runs to convergence)."""
+    twin = ReducedTwin(cfg, rom, tolerance=np.inf)
+    d, v = np.array([0.003, 0.006, 0.004]), np.array([0.0, 1800.0, 900.0])
+
+    def energy(dd, vv):
+        twin.reset()
+        return twin.solve(dd, vv).energy
+
+    twin.reset()
+    res = twin.solve(d, v)
+    h = 1e-6
+    for k in range(3):
+        step = h * np.eye(3)[k]
+        derivative = (energy(d + step, v) - energy(d - step, v)) / (2 * h)
+        assert res.force[k] == pytest.approx(derivative, rel=1e-5, abs=1e-7)
+    mf = 0.5 * cfg.permittivity / cfg.thickness**2
+    for u in (1, 2):
+        m = mf * v[u] ** 2
+        dm = 1e-4 * m
+        up, down = v.copy(), v.copy()
+        up[u], down[u] = np.sqrt((m + dm) / mf), np.sqrt((m - dm) / mf)
+        derivative = (energy(d, up) - energy(d, down)) / (2 * dm)
+        assert res.capacitance[u] == pytest.approx(-cfg.permittivity / cfg.thickness**2 * derivative, rel=1e-6)
+
+
+def test_commands_outside_the_envelope_are_answered_by_the_fe_and_say_so(cfg, rom):
+    twin = ReducedTwin(cfg, rom)
+    cases = [([0.002, 0.012, 0.004], [0.0, 1000.0, 0.0], "displacement", "unit 2"),  # deeper than trained
+             ([0.002, 0.004, 0.004], [1500.0, 1000.0, 0.0], "voltage", "unit 1"),  # an untrained unit
+             ([0.002, 0.004, 0.004], [0.0, 3000.0, 0.0], "voltage", "unit 2")]  # above the trained voltage
+    for count, (d, v, what, unit) in enumerate(cases, start=1):
+        res = twin.solve(d, v)
+        assert res.fallback.startswith("envelope:") and what in res.fallback and unit in res.fallback
+        ref = ArrayTwin(cfg).solve(d, v)
+        np.testing.assert_allclose(res.force, ref.force, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(res.capacitance, ref.capacitance, rtol=1e-8)
+        assert twin.fallbacks["envelope"] == count and np.isnan(res.error_indicator)
+    res = twin.solve([0.002, 0.004, 0.004], [0.0, 0.0, 0.0], modes=("free", "driven", "free"))
+    assert "unit modes" in res.fallback and res.modes == ("free", "driven", "free")
+    back = twin.solve([0.002, 0.004, 0.004], [0.0, 1000.0, 0.0], modes=("driven",) * 3)
+    assert back.fallback == ""  # inside again: the reduced model answers
+    assert max(_errors(back, ArrayTwin(cfg).solve([0.002, 0.004, 0.004], [0.0, 1000.0, 0.0]), rom)) <= TOLERANCE
+
+
+def test_an_indicator_above_the_tolerance_sends_the_update_to_the_fe(cfg, rom):
+    twin = ReducedTwin(cfg, rom, tolerance=1e-12)
+    res = twin.solve([0.002, 0.005, 0.003], [0.0, 1200.0, 600.0])
+    assert res.fallback.startswith("indicator:") and res.error_indicator > 1e-12
+    assert twin.fallbacks == {"indicator": 1}
+    ref = ArrayTwin(cfg).solve([0.002, 0.005, 0.003], [0.0, 1200.0, 600.0])
+    np.testing.assert_allclose(res.force, ref.force, rtol=1e-6, atol=1e-8)
+
+
+def test_indicator_flags_every_command_whose_error_exceeds_the_tolerance(cfg, rom):
+    """With the envelope check widened away, the reduced model answers commands it was never trained
+    for (deeper indentation, higher voltage, voltage on unit 1): each whose error exceeds the
+    tolerance must have an indicator above it."""
+    wide = dataclasses.replace(rom, envelope=Envelope(("driven",) * 3, np.zeros(3), np.full(3, 0.014),
+                                                      np.zeros(3), np.full(3, 3300.0)))
+    twin = ReducedTwin(cfg, wide, tolerance=np.inf)
+    commands = [([0.002, 0.011, 0.004], [0.0, 1000.0, 0.0]), ([0.002, 0.014, 0.013], [0.0, 0.0, 0.0]),
+                ([0.002, 0.004, 0.004], [2500.0, 1000.0, 0.0]), ([0.006, 0.006, 0.006], [3300.0, 0.0, 0.0]),
+                ([0.002, 0.004, 0.007], [0.0, 3300.0, 3300.0]), ([0.004, 0.004, 0.004], [0.0, 1500.0, 0.0])]
+    exceeded = 0
+    for d, v in commands:
+        twin.reset()
+        res, ref = twin.solve(d, v), ArrayTwin(cfg).solve(d, v)
+        error = max(_errors(res, ref, rom))
+        if error > TOLERANCE:
+            exceeded += 1
+            assert res.error_indicator > TOLERANCE, (d, v, error, res.error_indicator)
+    assert exceeded >= 3  # the commands do leave the model's accuracy
+
+
+def test_a_rom_for_another_config_is_refused_and_a_file_round_trips(cfg, rom, tmp_path):
+    path = save_rom(rom, tmp_path / "array")
+    assert path.name == "array.npz"
+    again = load_rom(path, cfg)
+    for name in ("basis", "lift", "point_weight", "train_coordinates"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(rom, name))
+    assert again.envelope.modes == rom.envelope.modes and again.validation == rom.validation
+    stiffer = cfg.replace(c10=0.2e6)
+    with pytest.raises(RomMismatchError, match="c10"):
+        load_rom(path, stiffer)
+    with pytest.raises(RomMismatchError, match="prestretch"):
+        ReducedTwin(cfg.replace(prestretch=1.2), rom)
+    (tmp_path / "bad.npz").write_text("not a zip")
+    with pytest.raises(RomFileError, match="bad.npz"):
+        load_rom(tmp_path / "bad.npz")
+    with pytest.raises(RomFileError, match="does not exist"):
+        load_rom(tmp_path / "missing.npz")
