@@ -11,11 +11,13 @@ The subpackages, lowest layer first (each may import only those below it; checke
 ``lint-imports``, contracts in ``.importlinter``):
 
 * :mod:`.model`: the numerical core (config, mesh, material, FE assembly, solver, twin);
-* :mod:`.configfile`: the config from YAML files;
+* :mod:`.configfile`, :mod:`.romfile`, :mod:`.parallel`: the config from YAML files,
+  reduced models as ``.npz`` files, running independent tasks (here, processes, Dask);
 * :mod:`.bag`: ROS 2-profile MCAP files: writing, reading, recovery, time series;
 * :mod:`.ros`: the ROS 2 node, its recorder, the test harness, example controllers;
-* :mod:`.replay`, :mod:`.studies`, :mod:`.calibration`: re-simulating bags, the
-  paper's studies, fitting the material model (independent of each other);
+* :mod:`.replay`, :mod:`.studies`, :mod:`.calibration`, :mod:`.rom`: re-simulating
+  bags, the paper's studies, fitting the material model, training reduced models
+  (independent of each other);
 * :mod:`.cli`: the ``dea-twin`` command.
 """
 
@@ -28,9 +30,11 @@ from .model import (
     ConfigError,
     ConvergenceError,
     NewtonSettings,
+    ReducedTwin,
     SolveCancelled,
     TwinResult,
 )
+from .romfile import load_rom, save_rom
 
 __all__ = ["ArrayConfig", "ArrayTwin", "ConfigError", "ConvergenceError", "DRIVEN", "FREE", "NewtonSettings",
-           "SolveCancelled", "TwinResult", "load_config"]
+           "ReducedTwin", "SolveCancelled", "TwinResult", "load_config", "load_rom", "save_rom"]

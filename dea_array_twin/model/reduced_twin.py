@@ -140,9 +140,12 @@ class ReducedTwin:
 
     Attributes
     ----------
-    second_step : float
+    second_step : float, optional
         A Newton correction that changes an output by more than this fraction of its
-        scale (force reference, flat capacitance) gets a second evaluation.
+        scale (force reference, flat capacitance) gets a second evaluation; one whose
+        second step still does, Newton to convergence.  Default: the tolerance, at most
+        1e-3 (the error left after the first-order output correction is a fraction of
+        the correction).
     refresh_distance : float
         Fraction of the envelope's range of any input (driven displacement, Maxwell
         coefficient) a command may move from the last Hessian refresh before the next
@@ -162,8 +165,8 @@ class ReducedTwin:
     """
 
     def __init__(self, config: ArrayConfig | None, rom: ReducedModel, settings: NewtonSettings | None = None,
-                 tolerance: float | None = None, fe: ArrayTwin | None = None, second_step: float = 1e-4,
-                 refresh_distance: float = 0.1, background_refresh: bool = False):
+                 tolerance: float | None = None, fe: ArrayTwin | None = None, second_step: float | None = None,
+                 refresh_distance: float = 0.25, background_refresh: bool = False):
         self.config = config or ArrayConfig()
         check_config(rom, self.config)
         self.rom = rom
@@ -208,7 +211,8 @@ class ReducedTwin:
         self._flat_capacitance = model.flat_capacitance
         self._reference = rom.reference
         self.tolerance = float(tolerance if tolerance is not None else rom.tolerance)
-        self.second_step, self.refresh_distance = second_step, refresh_distance
+        self.second_step = float(second_step if second_step is not None else min(1e-3, self.tolerance))
+        self.refresh_distance = refresh_distance
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="rom-tangent") if background_refresh else None
         self._refresh_step = refresh_distance * self._range
         self.fallbacks: Counter = Counter()

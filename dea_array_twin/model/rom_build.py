@@ -39,7 +39,7 @@ from .reduced import Envelope, ReducedModel, config_hash
 from .rom_kernels import point_maps
 
 #: Memory allowed for the hyper-reduction matrix G [bytes]: snapshots are thinned to fit.
-HR_MATRIX_BYTES = 600e6
+HR_MATRIX_BYTES = 1e9
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,157 @@
+"""The reduced twin against its targets: accuracy on held-out commands and warm trajectories, time per update.
+
+Run:  .venv/bin/python benchmarks/bench_rom.py [--size 1x3|4x4] [--snapshots N] [--modes R]
+                                               [--validation N] [--workers N] [--rom FILE] [--save FILE]
+
+Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 voltage]):
+  - training cost: FE snapshots (wall and CPU s), basis + hyper-reduction, sizes;
+  - the error table over ``--validation`` held-out commands (FE as the truth): force error
+    over each unit's largest |F|, capacitance error over C, max and mean;
+  - warm trajectories (a random walk of every indenter by ``--step`` per update and every
+    voltage by the matching fraction of its range, reflected at the envelope): the same
+    errors against FE warm solves (and the FE's time per warm update), then the time per
+    update of the library's ``ReducedTwin.solve`` running alone on the same paths
+    (median, mean, p99, max; refreshes in the calling thread, then ``background_refresh``);
+Targets (issue 15): 1x3 <= 0.1 % force and capacitance error, <= 0.1 ms per update;
+4x4 <= 0.5 ms per update.  ``--rom FILE`` reuses a trained ROM (its stored validation
+table is printed; held-out commands are not re-solved).  Not a test: numbers for the
+notes, with the machine's load (``uptime``) printed next to them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
+from dea_array_twin.cli.rom import summary_lines
+from dea_array_twin.model.reduced import Envelope
+from dea_array_twin.model.reduced_twin import ReducedTwin
+from dea_array_twin.rom.train import train
+from dea_array_twin.romfile import load_rom, save_rom
+
+
+def grid(rows: int, cols: int) -> ArrayConfig:
+    """The default 1x3, or a rows x cols grid in a square-ish frame with Table 1's 15 mm edge distance."""
+    base = ArrayConfig()
+    if (rows, cols) == (1, 3):
+        return base
+    size = lambda n: n * base.electrode_diameter + (n - 1) * base.spacing + 0.030  # noqa: E731
+    return base.replace(rows=rows, cols=cols, length=size(cols), width=size(rows))
+
+
+def load() -> str:
+    return "load average %.2f %.2f %.2f" % os.getloadavg()
+
+
+def trajectory(envelope: Envelope, steps: int, step: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A reflected random walk through the envelope: ``step`` [m] per update on every driven indenter and
+    the same fraction of the voltage range on every voltage; directions re-drawn with probability 0.05."""
+    rng = np.random.default_rng(seed)
+    k = envelope.driven
+    lo = np.concatenate([envelope.displacement_min[k], envelope.voltage_min])
+    hi = np.concatenate([envelope.displacement_max[k], envelope.voltage_max])
+    span = np.where(hi > lo, hi - lo, 1.0)
+    rate = step / (envelope.displacement_max[k] - envelope.displacement_min[k]).max()
+    x = lo + rng.uniform(0.2, 0.8, lo.size) * (hi - lo)
+    direction = rng.choice([-1.0, 1.0], lo.size)
+    out = []
+    for _ in range(steps):
+        redraw = rng.random(lo.size) < 0.05
+        direction[redraw] = rng.choice([-1.0, 1.0], redraw.sum())
+        x = x + direction * rate * span
+        low, high = x < lo, x > hi
+        x = np.where(low, 2 * lo - x, np.where(high, 2 * hi - x, x))
+        direction[low | high] *= -1
+        out.append(x.copy())
+    out = np.array(out)
+    d = np.zeros((steps, envelope.n_units))
+    d[:, k] = out[:, :k.size]
+    return d, out[:, k.size:]
+
+
+def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reduced and FE twins along one path: force and capacitance errors of the ROM, FE times [ms]."""
+    twin = ReducedTwin(cfg, rom, tolerance=np.inf)
+    fe = ArrayTwin(cfg, NewtonSettings(check_stability=False))
+    force, cap, fe_ms = [], [], []
+    for i in range(len(d)):
+        res = twin.solve(d[i], v[i])
+        tic = time.perf_counter()
+        ref = fe.solve(d[i], v[i])
+        fe_ms.append(1e3 * (time.perf_counter() - tic))
+        force.append(np.abs(res.force - ref.force) / rom.force_reference)
+        cap.append(np.abs(res.capacitance - ref.capacitance) / ref.capacitance)
+    return np.array(force[1:]), np.array(cap[1:]), np.array(fe_ms[1:])
+
+
+def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background: bool) -> tuple[np.ndarray, dict]:
+    """The ROM alone along one path (as a control loop runs it): ms per update after the first."""
+    twin = ReducedTwin(cfg, rom, tolerance=np.inf, background_refresh=background)
+    twin.solve(d[0], v[0])
+    start = (twin.evaluations, twin.refreshes)
+    ms = []
+    for i in range(1, len(d)):
+        tic = time.perf_counter()
+        twin.solve(d[i], v[i])
+        ms.append(1e3 * (time.perf_counter() - tic))
+    twin.close()
+    return np.array(ms), {"evaluations": twin.evaluations - start[0], "refreshes": twin.refreshes - start[1]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="1x3", help="rows x cols (default 1x3, the paper's array)")
+    parser.add_argument("--snapshots", type=int, default=240)
+    parser.add_argument("--modes", type=int, default=30)
+    parser.add_argument("--validation", type=int, default=200)
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--tolerance", type=float, default=1e-3)
+    parser.add_argument("--step", type=float, default=1e-4, help="indenter step per update on the paths [m]")
+    parser.add_argument("--paths", type=int, default=3, help="warm trajectories (default 3)")
+    parser.add_argument("--length", type=int, default=400, help="updates per trajectory (default 400)")
+    parser.add_argument("--rom", help="use this trained ROM file instead of training")
+    parser.add_argument("--save", help="write the trained ROM here")
+    args = parser.parse_args()
+    rows, cols = (int(n) for n in args.size.split("x"))
+    cfg = grid(rows, cols)
+    print(f"dea_array_twin ROM benchmark: {args.size}, default mesh; {load()} on {os.cpu_count()} cores")
+    if args.rom:
+        rom = load_rom(args.rom, cfg)
+    else:
+        envelope = Envelope.box(("driven",) * cfg.n_units, (0.0, 0.75 * cfg.scaled("electrode_diameter")),
+                                (0.0, cfg.hv_voltage()))
+        tic = time.perf_counter()
+        result = train(cfg, envelope, args.snapshots, args.modes, args.tolerance, args.validation,
+                       workers=args.workers, say=lambda text: print(f"  {text}", flush=True))
+        rom = result.rom
+        print(f"training: {time.perf_counter() - tic:.0f} s wall with {args.workers} worker(s) "
+              f"(FE snapshots {result.timings['snapshots_s']:.0f} s, {result.timings['snapshots_cpu_s']:.0f} CPU s; "
+              f"build {result.timings['build_s']:.0f} s; FE validation {result.timings['validation_fe_s']:.0f} s); "
+              f"{load()}")
+        if args.save:
+            print(f"saved {save_rom(rom, args.save)}")
+    print("\n".join(summary_lines(rom)))
+    print(f"\nwarm trajectories: {args.paths} x {args.length} updates, {args.step * 1e3:g} mm per update per "
+          f"indenter; {load()}")
+    paths = [trajectory(rom.envelope, args.length, args.step, seed) for seed in range(args.paths)]
+    errors = [compare(cfg, rom, d, v) for d, v in paths]
+    force = np.concatenate([e[0] for e in errors])
+    cap = np.concatenate([e[1] for e in errors])
+    fe_ms = np.concatenate([e[2] for e in errors])
+    print(f"  errors against FE warm solves: force max {force.max():.4%} mean {force.mean():.5%}; capacitance max "
+          f"{cap.max():.4%} mean {cap.mean():.5%}; FE warm update median {np.median(fe_ms):.2f} ms")
+    for background in (False, True):
+        runs = [time_updates(cfg, rom, d, v, background) for d, v in paths]
+        ms = np.concatenate([r[0] for r in runs])
+        n = ms.size
+        print(f"  ROM update, refresh {'in a worker thread' if background else 'in the calling thread'}: "
+              f"median {np.median(ms):.3f} ms, mean {ms.mean():.3f}, p99 {np.percentile(ms, 99):.3f}, max "
+              f"{ms.max():.2f} ms; {sum(r[1]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
+              f"{sum(r[1]['refreshes'] for r in runs)} refreshes in {n} updates; {load()}")
+
+if __name__ == "__main__":
+    main()
