@@ -39,9 +39,19 @@ class RomMismatchError(ValueError):
     """A ROM does not belong to the configuration (or the file format) it is used with."""
 
 
+#: Config fields that bound or label commands without changing the model's equations (the
+#: node may change the first two at run time): a ROM does not depend on them.
+UNCHECKED_FIELDS = ("max_displacement", "breakdown_field", "experimental_hv_prestretch", "experimental_hv_voltage")
+
+
+def _model_fields(cfg: ArrayConfig) -> dict:
+    return {k: v for k, v in cfg.to_dict().items() if k not in UNCHECKED_FIELDS}
+
+
 def config_hash(cfg: ArrayConfig) -> str:
-    """A short hash of every config field: a ROM is valid for exactly one configuration."""
-    text = json.dumps(cfg.to_dict(), sort_keys=True)
+    """A short hash of every config field that enters the model (all but :data:`UNCHECKED_FIELDS`):
+    a ROM is valid for exactly one such configuration."""
+    text = json.dumps(_model_fields(cfg), sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -248,8 +258,9 @@ def check_config(rom: ReducedModel, cfg: ArrayConfig) -> None:
     """Refuse ``rom`` unless it was trained on exactly ``cfg``; the error names the fields that differ."""
     if rom.config_hash == config_hash(cfg):
         return
-    ours = cfg.to_dict()
-    differ = sorted(k for k in set(ours) | set(rom.config) if ours.get(k) != rom.config.get(k))
+    ours = _model_fields(cfg)
+    differ = sorted(k for k in (set(ours) | set(rom.config)) - set(UNCHECKED_FIELDS)
+                    if ours.get(k) != rom.config.get(k))
     detail = ", ".join(f"{k}: ROM {rom.config.get(k)!r}, config {ours.get(k)!r}" for k in differ[:6])
     raise RomMismatchError(f"the ROM was trained for another configuration (hash {rom.config_hash}, this config "
                            f"{config_hash(cfg)}); differing fields: {detail or 'none (other version)'}")

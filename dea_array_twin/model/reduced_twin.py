@@ -167,12 +167,12 @@ class ReducedTwin:
     def __init__(self, config: ArrayConfig | None, rom: ReducedModel, settings: NewtonSettings | None = None,
                  tolerance: float | None = None, fe: ArrayTwin | None = None, second_step: float | None = None,
                  refresh_distance: float = 0.25, background_refresh: bool = False):
-        self.config = config or ArrayConfig()
-        check_config(rom, self.config)
+        self._config = config or ArrayConfig()
+        check_config(rom, self._config)
         self.rom = rom
         #: Number of units.
-        self.n_units = self.config.n_units
-        self.fe = fe or ArrayTwin(self.config, settings)
+        self.n_units = self._config.n_units
+        self.fe = fe or ArrayTwin(self._config, settings)
         model = self.model = self.fe.model
         if rom.basis.shape[0] != model.disc.n_dofs:
             raise RomMismatchError(f"ROM basis has {rom.basis.shape[0]} dofs, the mesh {model.disc.n_dofs}")
@@ -189,7 +189,7 @@ class ReducedTwin:
         self._unit = np.ascontiguousarray(model.mesh.element_unit[rom.point_element])
         self._held = np.ascontiguousarray(held_elements(model, self.modes)[rom.point_element])
         self._centre = full[3 * model.mesh.centre_nodes + 2]  # (n_units, nc): centre z of [1, d, q]
-        cfg = self.config
+        cfg = self._config
         self._cap_factor = cfg.permittivity / cfg.thickness**2
         self._maxwell_factor = 0.5 * cfg.permittivity / cfg.thickness**2
         self._output_scale = np.concatenate([rom.force_reference[self._driven], model.flat_capacitance])
@@ -219,6 +219,19 @@ class ReducedTwin:
         self.updates = self.evaluations = self.refreshes = 0
         self.reset()
 
+
+    @property
+    def config(self) -> ArrayConfig:
+        """The array; may be replaced by one that differs only in :data:`~.reduced.UNCHECKED_FIELDS`
+        (the command limits a node changes at run time), else :class:`RomMismatchError`."""
+        return self._config
+
+    @config.setter
+    def config(self, cfg: ArrayConfig) -> None:
+        check_config(self.rom, cfg)
+        self._config = self.fe.config = cfg
+        self._limit = cfg.scaled("max_displacement")
+        self._breakdown = cfg.breakdown_field
 
     def reset(self) -> None:
         """Flat pre-stretched state at 0 V in the trained modes; the next solve starts cold."""

@@ -173,6 +173,12 @@ def test_a_rom_for_another_config_is_refused_and_a_file_round_trips(cfg, rom, tm
         load_rom(path, stiffer)
     with pytest.raises(RomMismatchError, match="prestretch"):
         ReducedTwin(cfg.replace(prestretch=1.2), rom)
+    # Command limits are not part of the model: a node changes them at run time.
+    twin = ReducedTwin(cfg.replace(max_displacement=0.02), rom)
+    twin.config = cfg.replace(breakdown_field=100e6)
+    assert twin.fe.config.breakdown_field == 100e6
+    with pytest.raises(RomMismatchError, match="epsr"):
+        twin.config = cfg.replace(epsr=3.0)
     (tmp_path / "bad.npz").write_text("not a zip")
     with pytest.raises(RomFileError, match="bad.npz"):
         load_rom(tmp_path / "bad.npz")
