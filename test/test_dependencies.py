@@ -90,7 +90,7 @@ CHECK = textwrap.dedent("""
         err = io.StringIO()
         with contextlib.redirect_stderr(err):
             extras[argv[0]] = [main(argv), err.getvalue()]
-    from dea_array_twin.studies.parallel import ExecutorError, run_tasks
+    from dea_array_twin.parallel import ExecutorError, run_tasks
     try:
         run_tasks(len, [], scheduler="tcp://127.0.0.1:9")
     except ExecutorError as exc:

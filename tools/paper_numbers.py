@@ -31,8 +31,8 @@ import numpy as np
 
 from dea_array_twin import ArrayConfig, ArrayTwin
 from dea_array_twin.model.geometry import edge_distance
+from dea_array_twin.parallel import run_tasks
 from dea_array_twin.studies import tasks as study
-from dea_array_twin.studies.parallel import run_tasks
 from dea_array_twin.studies.tasks import SWEEPS, CurveResult, CurveTask
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "paper.md"
