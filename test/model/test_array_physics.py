@@ -346,3 +346,17 @@ def test_commands_at_the_limits_are_accepted(kind, values):
     v_max = ArrayConfig().hv_voltage(ArrayConfig().breakdown_field)
     assert command_error("voltage", [v_max, 0.0, 0.0], ArrayConfig()) is None
     assert command_error(kind, values, ArrayConfig(max_displacement=0.031, breakdown_field=160e6)) is None
+
+
+def test_a_free_neighbours_deflection_is_not_an_indenter_jump(make_twin):
+    """The long-jump stability check looks at driven indenters only: a free unit has no
+    indenter, and its centre (1.75 mm up at 15 mm here, beyond a 1 mm long_jump) is not
+    a commanded move.  Counting it checked (and factored) every update of larger arrays."""
+    twin = make_twin(NewtonSettings(check_stability=False, long_jump=0.05), **COARSE)
+    for d in (0.005, 0.010, 0.015):
+        res = twin.solve([0, d, 0], 0.0, FREE_CENTRE)
+    assert res.centre_deflection[0] > 0.05 * 0.020
+    small = twin.solve([0, 0.0151, 0], 0.0, FREE_CENTRE)
+    assert small.stable is None and small.factorisations == 0
+    jump = twin.solve([0, 0.0131, 0], 0.0, FREE_CENTRE)  # 2 mm of the driven indenter: checked
+    assert jump.stable is True
