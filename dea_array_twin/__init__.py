@@ -7,6 +7,13 @@ The public API is flat and needs only numpy, scipy and gmsh::
     res = twin.solve(displacement=[0, 0.015, 0], modes=["free", "driven", "free"])
     res.force, res.capacitance            # N, F per unit
 
+and actuator mode (biased units: voltages in, stroke and capacitance out)::
+
+    cfg = ArrayConfig(unit_modes=["free", "biased", "free"],
+                      bias=[{"type": "linear", "stiffness": 40.0, "free_position": 0.020}])
+    curve = stroke(ArrayTwin(cfg), [0.0, 2730.0])   # quasi-static, per level
+    curve.stroke, curve.capacitance, curve.stable, curve.snap
+
 The subpackages, lowest layer first (each may import only those below it; checked by
 ``lint-imports``, contracts in ``.importlinter``):
 
@@ -23,6 +30,7 @@ The subpackages, lowest layer first (each may import only those below it; checke
 
 from .configfile import load_config
 from .model import (
+    BIASED,
     DRIVEN,
     FREE,
     ArrayConfig,
@@ -33,8 +41,10 @@ from .model import (
     ReducedTwin,
     SolveCancelled,
     TwinResult,
+    simulate,
+    stroke,
 )
 from .romfile import load_rom, save_rom
 
-__all__ = ["ArrayConfig", "ArrayTwin", "ConfigError", "ConvergenceError", "DRIVEN", "FREE", "NewtonSettings",
-           "ReducedTwin", "SolveCancelled", "TwinResult", "load_config", "load_rom", "save_rom"]
+__all__ = ["ArrayConfig", "ArrayTwin", "BIASED", "ConfigError", "ConvergenceError", "DRIVEN", "FREE", "NewtonSettings",
+           "ReducedTwin", "SolveCancelled", "TwinResult", "load_config", "load_rom", "save_rom", "simulate", "stroke"]

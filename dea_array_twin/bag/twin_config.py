@@ -2,7 +2,8 @@
 
 The twin's recorder stores them in the metadata record ``dea_array_twin_config``
 (:data:`~.writer.CONFIG_RECORD`): every :class:`~dea_array_twin.model.config.ArrayConfig` field as
-``str(value)``, plus ``unit_modes`` (``"[driven, free, driven]"``) and ``update_rate``.
+``str(value)`` (lists and mappings, e.g. ``bias``, as YAML flow text), with ``unit_modes``
+the node's modes (``"[driven, free, driven]"``), plus ``update_rate``.
 :func:`metadata_from_config` writes that record, :func:`config_from_metadata` reads it
 back, and :func:`resolve_config` chooses between a config file, the record and the
 default config, and likewise for the unit modes.
@@ -62,7 +63,8 @@ def config_from_metadata(values: dict[str, str]) -> tuple[ArrayConfig, list[str]
 
 def metadata_from_config(cfg: ArrayConfig, modes: Sequence[str], update_rate: float = 0.0) -> dict[str, str]:
     """The ``dea_array_twin_config`` record for ``cfg`` (the inverse of :func:`config_from_metadata`)."""
-    out = {k: str(v) for k, v in cfg.to_dict().items()}
+    out = {k: yaml.safe_dump(v, default_flow_style=True, width=10**9).strip() if isinstance(v, (list, dict)) else str(v)
+           for k, v in cfg.to_dict().items()}
     out["unit_modes"] = "[" + ", ".join(modes) + "]"
     out["update_rate"] = str(float(update_rate))
     return out

@@ -14,12 +14,18 @@ from typing import Any
 
 import numpy as np
 
+from .bias import BiasLaw, NoBias, bias_from_entry
 from .material import EPS0, Yeoh
 
 LAYOUTS = ("array", "circular")
 #: Table fields (tuples of float, given as any sequence of numbers).
 _TABLES = ("slip_displacement", "slip_factor", "experimental_hv_prestretch", "experimental_hv_voltage")
 SHAPES = ("circle", "square")
+#: Unit modes: indenter position imposed, no indenter, indenter on a bias element.
+DRIVEN, FREE, BIASED = "driven", "free", "biased"
+MODES = (DRIVEN, FREE, BIASED)
+#: Per-unit fields: one entry for every unit, or one per unit.
+UNIT_FIELDS = ("unit_modes", "bias", "mass", "damping", "contact")
 
 
 class ConfigError(ValueError):
@@ -92,6 +98,23 @@ class ArrayConfig:
         section-6 study voltage, which is eq. 14 (:meth:`hv_voltage`).  Pre-stretches
         strictly increasing, in (1, 5]; voltages finite and > 0; empty = no
         experimental HV known.
+    unit_modes : tuple of str
+        Per unit ``"driven"`` (indenter position imposed, the characterisation rig),
+        ``"free"`` (no indenter) or ``"biased"`` (the indenter rides on its bias
+        element: an actuator unit).  One entry stands for every unit.
+    bias : tuple of bias laws
+        Bias element of each biased unit (:mod:`.bias`); YAML entries like
+        ``{type: linear, stiffness: 40.0, free_position: 0.020}``, ``null`` = none.
+        One entry stands for every unit.
+    mass : tuple of float
+        Moving mass of each biased unit's indenter and bias element [kg]; 0 (the
+        default) = quasi-static.  One entry stands for every unit.
+    damping : tuple of float
+        Viscous damping of each biased unit's indenter [N s/m].  One entry for all.
+    contact : tuple of bool
+        Per unit, whether the indenter only pushes (unilateral contact): it lifts off
+        when it would have to pull the membrane down, and the unit is free until the
+        membrane comes back to it.  False (the default): the indenter is bonded.
     """
 
     layout: str = "array"
@@ -121,11 +144,22 @@ class ArrayConfig:
     slip_factor: tuple[float, ...] = ()
     experimental_hv_prestretch: tuple[float, ...] = (1.10, 1.20)
     experimental_hv_voltage: tuple[float, ...] = (2730.0, 2300.0)
+    unit_modes: tuple[str, ...] = (DRIVEN,)
+    bias: tuple[BiasLaw, ...] = (NoBias(),)
+    mass: tuple[float, ...] = (0.0,)
+    damping: tuple[float, ...] = (0.0,)
+    contact: tuple[bool, ...] = (False,)
 
     def __post_init__(self) -> None:
         for name in _TABLES:  # accept any sequence of numbers
             object.__setattr__(self, name, _coerce(name, getattr(self, name), tuple))
+        for name in UNIT_FIELDS:  # a scalar or a sequence, entries converted
+            object.__setattr__(self, name, _coerce_units(name, getattr(self, name)))
         validate(self)
+        for name in UNIT_FIELDS:  # one entry when every unit has the same: one config, one form
+            values = getattr(self, name)
+            if len(values) > 1 and all(v == values[0] for v in values):
+                object.__setattr__(self, name, values[:1])
 
     # ---- derived quantities -------------------------------------------------------
     @property
@@ -197,13 +231,31 @@ class ArrayConfig:
         knots = np.asarray(self.slip_displacement) * self.scale
         return float(np.interp(displacement, knots, self.slip_factor))
 
+    def per_unit(self, name: str) -> tuple:
+        """A per-unit field (:data:`UNIT_FIELDS`) with one entry per unit (a single entry repeated)."""
+        values = getattr(self, name)
+        return values * self.n_units if len(values) == 1 else values
+
+    @property
+    def modes(self) -> tuple[str, ...]:
+        """``unit_modes`` with one entry per unit."""
+        return self.per_unit("unit_modes")
+
     def replace(self, **changes: Any) -> "ArrayConfig":
         """A copy with ``changes`` applied (validated)."""
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain dict of every field (for YAML, ROS parameters, MCAP metadata); tables as lists."""
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        """Plain dict of every field (for YAML, ROS parameters, MCAP metadata); tables as lists.
+
+        ``bias`` is a list of YAML entries (``{type: linear, stiffness: ..., ...}``)."""
+        out = {}
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.name == "bias":
+                value = [law.to_dict() for law in value]
+            out[f.name] = list(value) if isinstance(value, tuple) else value
+        return out
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "ArrayConfig":
@@ -214,9 +266,43 @@ class ArrayConfig:
             raise ConfigError(f"unknown config field(s) {unknown}; known fields: {sorted(known)}")
         typed = {}
         for f in dataclasses.fields(cls):
-            if f.name in values:
+            if f.name in values and f.name not in UNIT_FIELDS:
                 typed[f.name] = _coerce(f.name, values[f.name], type(getattr(cls(), f.name)))
+            elif f.name in values:
+                typed[f.name] = values[f.name]  # converted by __post_init__
         return cls(**typed)
+
+
+def _coerce_units(name: str, value: Any) -> tuple:
+    """A per-unit field from a scalar, a mapping (``bias``) or a sequence, each entry converted.
+
+    ``unit_modes`` entries are strings, ``bias`` entries bias laws (from YAML mappings or
+    ``None``), ``mass``/``damping`` numbers, ``contact`` booleans.
+    """
+    single = (isinstance(value, (str, bytes, dict)) or value is None or not hasattr(value, "__iter__")
+              or (name == "bias" and not isinstance(value, (list, tuple))))
+    entries = (value,) if single else tuple(value)
+    if not entries:
+        raise ConfigError(f"{name}: needs one entry for every unit or one per unit, got an empty list")
+    out = []
+    for i, entry in enumerate(entries):
+        label = f"{name}[{i}]"
+        if name == "unit_modes":
+            if not isinstance(entry, str):
+                raise ConfigError(f"{label}: expected one of {list(MODES)}, got {entry!r}")
+            out.append(entry)
+        elif name == "bias":
+            try:
+                out.append(bias_from_entry(entry))
+            except ValueError as exc:
+                raise ConfigError(f"{label}: {exc}") from None
+        elif name == "contact":
+            if not isinstance(entry, (bool, np.bool_)):
+                raise ConfigError(f"{label}: expected true or false, got {entry!r}")
+            out.append(bool(entry))
+        else:
+            out.append(_coerce(label, entry, float))
+    return tuple(out)
 
 
 def _coerce(name: str, value: Any, kind: type) -> Any:
@@ -272,6 +358,7 @@ def validate(cfg: ArrayConfig) -> None:
     _require(1.0 < cfg.prestretch <= 5.0, "prestretch",
              f"must be in (1, 5]: a membrane at lp <= 1 is slack, got {cfg.prestretch}")
     _validate_slip(cfg)
+    _validate_units(cfg)
     _validate_experimental_hv(cfg)
     _require(cfg.element_order in (1, 2), "element_order", f"must be 1 or 2, got {cfg.element_order}")
     for name in ("mesh_size_indenter", "mesh_size_electrode"):
@@ -324,3 +411,17 @@ def _validate_experimental_hv(cfg: ArrayConfig) -> None:
              f"must be strictly increasing, got {list(stretches)}")
     _require(all(math.isfinite(v) and v > 0 for v in volts), "experimental_hv_voltage",
              f"must be finite and > 0 V, got {list(volts)}")
+
+
+def _validate_units(cfg: ArrayConfig) -> None:
+    """Per-unit fields: one entry or one per unit; modes known; mass and damping finite and >= 0."""
+    n = cfg.n_units
+    for name in UNIT_FIELDS:
+        count = len(getattr(cfg, name))
+        _require(count in (1, n), name, f"needs 1 entry (for every unit) or {n} (one per unit), got {count}")
+    for i, mode in enumerate(cfg.unit_modes):
+        _require(mode in MODES, f"unit_modes[{i}]", f"must be one of {list(MODES)}, got {mode!r}")
+    for name in ("mass", "damping"):
+        for i, value in enumerate(getattr(cfg, name)):
+            _require(math.isfinite(value) and value >= 0, f"{name}[{i}]",
+                     f"must be a finite number >= 0 ({'kg' if name == 'mass' else 'N s/m'}), got {value}")

@@ -10,6 +10,7 @@ coefficient of every element for given voltages (eq. 5), and the outputs of a st
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -17,11 +18,15 @@ import numpy as np
 
 from . import kernels
 from .assembly import Discretisation, PointState, SparsePattern, discretise
-from .config import ArrayConfig
+from .config import BIASED, DRIVEN, FREE, MODES, ArrayConfig
 from .mesh import Mesh, build_mesh, geometry_key
 
-DRIVEN, FREE = "driven", "free"
-MODES = (DRIVEN, FREE)
+__all__ = ["BIASED", "DRIVEN", "FREE", "MODES", "MembraneModel", "Outputs", "check_modes", "held"]
+
+
+def held(mode: str) -> bool:
+    """Whether a unit in ``mode`` has a rigid indenter disk (driven or biased)."""
+    return mode in (DRIVEN, BIASED)
 
 
 def check_modes(modes: Sequence[str], n_units: int) -> tuple[str, ...]:
@@ -112,11 +117,12 @@ class MembraneModel:
         """Sorted prescribed and free dof numbers for the given unit modes.
 
         Prescribed: every dof of the frame nodes (eq. 8) and of the indenter disk of
-        each driven unit (eq. 9).
+        each driven and each biased unit (eq. 9).  A biased disk's common height is an
+        unknown of its own (:mod:`.indenters`), not a free dof.
         """
-        key = tuple(m == DRIVEN for m in modes)
-        if key not in self._dofs:  # read-only arrays, cached per pattern of driven units
-            nodes = [self.mesh.frame_nodes] + [self.mesh.indenter_nodes[k] for k, m in enumerate(modes) if m == DRIVEN]
+        key = tuple(held(m) for m in modes)
+        if key not in self._dofs:  # read-only arrays, cached per pattern of held disks
+            nodes = [self.mesh.frame_nodes] + [self.mesh.indenter_nodes[k] for k, m in enumerate(modes) if held(m)]
             fixed = np.unique(np.concatenate(nodes))
             dofs = (3 * fixed[:, None] + np.arange(3)).ravel()
             mask = np.ones(self.disc.n_dofs, dtype=bool)
@@ -165,16 +171,43 @@ class MembraneModel:
         Frame nodes sit at :meth:`frame_positions`, ``(lx X, lp Y, 0)`` with ``lx``
         = :meth:`edge_stretch` (``lp`` without slip, eq. 8; X, Y from the membrane
         centre, where both layouts put the origin); the disk of a driven unit k at
-        ``(lp X, lp Y, d_k)`` (eq. 9, no slip).
+        ``(lp X, lp Y, d_k)`` (eq. 9, no slip).  Biased disks are left alone (their
+        height is an unknown: :meth:`place_disk`).
         """
-        lp = self.cfg.prestretch
-        xs = x.reshape(-1, 3)
-        xs[self.mesh.frame_nodes] = self.frame_positions(modes, displacement)
+        x.reshape(-1, 3)[self.mesh.frame_nodes] = self.frame_positions(modes, displacement)
         for k, mode in enumerate(modes):
             if mode == DRIVEN:
-                disk = self.mesh.indenter_nodes[k]
-                xs[disk, :2] = lp * self.mesh.nodes[disk]
-                xs[disk, 2] = displacement[k]
+                self.place_disk(x, k, displacement[k])
+
+    def place_disk(self, x: np.ndarray, unit: int, height: float) -> None:
+        """Put the indenter disk of ``unit`` at ``(lp X, lp Y, height)`` in ``x``, in place (eq. 9)."""
+        disk = self.mesh.indenter_nodes[unit]
+        xs = x.reshape(-1, 3)
+        xs[disk, :2] = self.cfg.prestretch * self.mesh.nodes[disk]
+        xs[disk, 2] = height
+
+    def disk_z_dofs(self, unit: int) -> np.ndarray:
+        """Global z dofs of the indenter disk of ``unit`` (sorted)."""
+        return 3 * self.mesh.indenter_nodes[unit] + 2
+
+    def disk_stiffness(self, values: np.ndarray) -> np.ndarray:
+        """``1_k^T K 1_j`` [N/m] over the disk z dofs of units k and j, shape (n_units, n_units).
+
+        The stiffness of the membrane against rigid vertical motions of whole indenter
+        disks with every other dof held: the ``K_ww`` block of a biased unit's height
+        (:mod:`.indenters`).  ``values`` are the tangent's nonzeros in :attr:`pattern` order.
+        """
+        dofs, indicator = self._disk_indicator
+        return indicator.T @ (self.pattern.block(values, dofs, dofs) @ indicator)
+
+    @functools.cached_property
+    def _disk_indicator(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every disk z dof (sorted) and, per dof, a one in its unit's column."""
+        owner = np.full(self.disc.n_dofs, -1)
+        for k in range(self.n_units):
+            owner[self.disk_z_dofs(k)] = k
+        dofs = np.flatnonzero(owner >= 0)
+        return dofs, (owner[dofs, None] == np.arange(self.n_units)).astype(float)
 
     def corner_area_stretch(self, positions: np.ndarray) -> np.ndarray:
         """Area ratio (deformed / reference) of each element's corner triangle [-], shape (n_elements,).
@@ -213,16 +246,16 @@ class MembraneModel:
         cap = np.empty(self.n_units)
         peak = np.empty(self.n_units)
         force = np.zeros(self.n_units)
-        held = np.zeros(mesh.n_elements, dtype=bool)
+        in_disks = np.zeros(mesh.n_elements, dtype=bool)
         for k, mode in enumerate(modes):
             electrode = self._unit_elements[k]
             cap[k] = weight_det[electrode].sum()
             peak[k] = det[electrode].max()
-            if mode == DRIVEN:
+            if held(mode):
                 force[k] = z[mesh.indenter_nodes[k]].sum()
-                held[self._disk_elements[k]] = True
+                in_disks[self._disk_elements[k]] = True
         cap *= cfg.permittivity / cfg.thickness
         peak = np.sqrt(peak) * np.abs(np.asarray(voltage, float)) / cfg.thickness
-        sigma_min = kernels.min_principal_stress(point, held)
+        sigma_min = kernels.min_principal_stress(point, in_disks)
         centre = x.reshape(-1, 3)[mesh.centre_nodes, 2]
         return Outputs(force, cap, centre, peak, sigma_min)

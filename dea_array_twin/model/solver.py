@@ -28,6 +28,12 @@ reduce it.  The solver
   ``increment_tol * length_scale``;
 * checks that the equilibrium is a stable minimum from the inertia of the
   ``LDL^T`` factorisation of ``K_ff`` at the converged state (a Cholesky test).
+
+Biased units add their indenter heights as unknowns bordering ``K_ff``
+(:mod:`.indenters`); the stability check then adds the negative eigenvalues of the
+bordered Schur complement, and a quasi-static path that passes a limit point of a biased
+unit (snap-through) is detected and landed on the stable branch it jumps to
+(:mod:`.snap`).
 """
 
 from __future__ import annotations
@@ -37,9 +43,11 @@ from typing import Callable
 
 import numpy as np
 
+from .indenters import IndenterBorder, IndenterLoad, negative_eigenvalues
 from .kernels import internal_forces, tangent_values
 from .linsolve import BACKENDS, Factoriser, LDLFactor, factoriser
-from .membrane import DRIVEN, MembraneModel
+from .membrane import BIASED, DRIVEN, MembraneModel, held
+from .snap import Snap, land_after_snap
 
 
 def _norm(v: np.ndarray) -> float:
@@ -94,6 +102,19 @@ class NewtonSettings:
     linear_solver : str
         Factorisation of ``K_ff`` (:mod:`.linsolve`): ``"block"`` (compiled LDL^T on
         3x3 node blocks with symbolic reuse, the default) or ``"superlu"`` (scipy).
+    snap_step : float
+        Load-path fraction below which a step of a path with biased units that fails
+        to converge, or that moves a height ``jump_tol`` away from its linear
+        prediction, is taken for a limit point: the state is continued in that unit's
+        height until it lands on the stable branch (:mod:`.snap`).  Longer such steps
+        are retried in halves.
+    jump_tol : float
+        Largest distance (fraction of D) between a biased unit's converged height and
+        the linear prediction of its load step before the step counts as a jump to
+        another branch.
+    snap_march : float
+        Height increment (fraction of D) of the continuation that looks for the branch a
+        snapping unit lands on.
     """
 
     residual_tol: float = 1e-8
@@ -106,6 +127,9 @@ class NewtonSettings:
     unstable_step: float = 1.0 / 32.0
     long_jump: float = 0.1
     linear_solver: str = "block"
+    snap_step: float = 1.0 / 256.0
+    jump_tol: float = 0.01
+    snap_march: float = 0.02
 
     def __post_init__(self) -> None:
         if self.linear_solver not in BACKENDS:
@@ -114,12 +138,17 @@ class NewtonSettings:
 
 @dataclass
 class Factorisation:
-    """An ``LDL^T`` factorisation of ``K_ff`` and the ``K_fp`` block at one state (:mod:`.linsolve`)."""
+    """An ``LDL^T`` factorisation of ``K_ff`` and the ``K_fp`` block at one state (:mod:`.linsolve`).
+
+    ``disk_stiffness`` is :meth:`.membrane.MembraneModel.disk_stiffness`, the ``K_ww``
+    block of biased units' heights (:mod:`.indenters`).
+    """
 
     factor: LDLFactor
     k_fp: object
     free: np.ndarray
     prescribed: np.ndarray
+    disk_stiffness: np.ndarray
     state: np.ndarray | None = None  # the converged positions it was computed at, if any
     _influence: dict = field(default_factory=dict)
     _negative: int | None = None
@@ -172,6 +201,10 @@ class SolveStats:
     step_cuts: int = 0
     residual_norm: float = float("nan")
     stability_checked: bool = False
+    #: Negative eigenvalues of the (bordered) tangent at the end when checked; -1 unknown.
+    negative_eigenvalues: int = -1
+    #: Snap-throughs on the way: :class:`~.snap.Snap` records.
+    snaps: list = field(default_factory=list)
 
 
 def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed: np.ndarray,
@@ -179,7 +212,8 @@ def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed
     """Assemble ``K`` from element matrices ``ke`` and factor its free-free block (no reuse)."""
     values = model.pattern.values(ke)
     factor = Factoriser(model.pattern, free, backend).factor(values)
-    return Factorisation(factor, model.pattern.block(values, free, prescribed), free, prescribed)
+    return Factorisation(factor, model.pattern.block(values, free, prescribed), free, prescribed,
+                         model.disk_stiffness(values))
 
 
 class EquilibriumSolver:
@@ -190,16 +224,28 @@ class EquilibriumSolver:
         self.settings = settings or NewtonSettings()
         self.factorisation: Factorisation | None = None
         self._disk_groups: dict[tuple[str, ...], list[np.ndarray]] = {}
-        self._last_path: tuple | None = None  # (end state, its free and prescribed change, free, voltage)
+        self._last_border: tuple | None = None  # (modes, IndenterBorder)
+        #: (end state, its free and prescribed change, free, voltage, biased units' load change
+        #: or None, their height change): what the continuation predictors extrapolate.
+        self._last_path: tuple | None = None
 
     def _groups(self, modes: tuple[str, ...]) -> list[np.ndarray]:
-        """Index sets into the prescribed dofs of each driven disk's z dofs (rigid moves)."""
+        """Index sets into the prescribed dofs of each driven or biased disk's z dofs (rigid moves)."""
         if modes not in self._disk_groups:
             m = self.model
             prescribed = m.prescribed_dofs(modes)[0]
-            self._disk_groups[modes] = [np.flatnonzero(np.isin(prescribed, 3 * m.mesh.indenter_nodes[k] + 2))
-                                        for k, mode in enumerate(modes) if mode == DRIVEN]
+            self._disk_groups[modes] = [np.flatnonzero(np.isin(prescribed, m.disk_z_dofs(k)))
+                                        for k, mode in enumerate(modes) if held(mode)]
         return self._disk_groups[modes]
+
+    def _border(self, modes: tuple[str, ...], prescribed: np.ndarray, load: IndenterLoad) -> IndenterBorder:
+        """The biased heights' border of ``modes``, kept across solves with its blocks per factorisation."""
+        if self._last_border is None or self._last_border[0] != modes:
+            units = [k for k, mode in enumerate(modes) if mode == BIASED]
+            self._last_border = (modes, IndenterBorder.for_units(self.model, units, prescribed, load))
+        border = self._last_border[1]
+        border.load, border.outside = load, None
+        return border
 
     def _tangent(self, x: np.ndarray, maxwell: np.ndarray) -> np.ndarray:
         """Nonzeros of the tangent at ``x`` (:func:`.kernels.tangent_values`)."""
@@ -209,13 +255,22 @@ class EquilibriumSolver:
     def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
         """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``."""
         factor = factoriser(self.model.pattern, free, self.settings.linear_solver).factor(values)
-        return Factorisation(factor, self.model.pattern.block(values, free, prescribed), free, prescribed)
+        return Factorisation(factor, self.model.pattern.block(values, free, prescribed), free, prescribed,
+                             self.model.disk_stiffness(values))
+
+    def factorise_at(self, x: np.ndarray, maxwell: np.ndarray, free: np.ndarray, prescribed: np.ndarray,
+                     stats: SolveStats) -> Factorisation:
+        """The factorised tangent at the converged ``x`` (counted in ``stats``)."""
+        fact = self._factorise(self._tangent(x, maxwell), free, prescribed)
+        fact.state = x
+        stats.factorisations += 1
+        return fact
 
     # ------------------------------------------------------------------ one step
     def _newton(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, maxwell: np.ndarray,
-                fact: Factorisation | None, stats: SolveStats,
-                cancel: Callable[[], bool] | None = None) -> tuple | None:
-        """Newton iterations at fixed prescribed values.
+                fact: Factorisation | None, stats: SolveStats, cancel: Callable[[], bool] | None = None,
+                border: IndenterBorder | None = None) -> tuple | None:
+        """Newton iterations at fixed prescribed values (and biased heights as unknowns: ``border``).
 
         Returns ``(x, r, point_state, factorisation)`` at convergence, None on failure.
         Raises :class:`SolveCancelled` when ``cancel()`` is true before an iteration.
@@ -228,15 +283,15 @@ class EquilibriumSolver:
             fact = None
         fresh = False  # whether ``fact`` was computed at the current iterate
         r, point = internal_forces(m.disc, x, *args)
-        r_f = r[free]
-        norm = _norm(r_f)
+        res = _residual(r, x, free, border)
+        norm = _norm(res)
         last_dx = np.inf
         for _ in range(s.max_iterations):
             if cancel is not None and cancel():  # the cancel point: between iterations
                 raise SolveCancelled(f"solve cancelled after {stats.iterations} Newton iterations")
             if not np.isfinite(norm):
                 return None
-            peak = np.abs(r_f).max()
+            peak = np.abs(res).max()
             if peak <= r_tol and last_dx <= x_tol:
                 stats.residual_norm = float(peak)
                 return x, r, point, fact
@@ -244,15 +299,26 @@ class EquilibriumSolver:
                 fact = self._factorise(self._tangent(x, maxwell), free, prescribed)
                 stats.factorisations += 1
                 fresh = True
-            dx = -fact.solve(r_f)
+            if border is None:
+                dx, dw = -fact.solve(res), np.zeros(0)
+            else:
+                step = border.direction(fact, res[:free.size], res[free.size:], x, r_tol)
+                if step is None:  # singular S: at a limit point, or a stale tangent
+                    if fresh:
+                        return None
+                    fact = None
+                    continue
+                dx, dw = step
             stats.iterations += 1
             for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625):  # backtrack on the residual norm
                 trial = x.copy()
                 trial[free] += alpha * dx
+                if border is not None:
+                    border.move(trial, alpha * dw)
                 r_trial, point_trial = internal_forces(m.disc, trial, *args)
-                r_trial_f = r_trial[free]
-                norm_trial = _norm(r_trial_f)
-                if np.isfinite(norm_trial) and (norm_trial < norm or np.abs(r_trial_f).max() <= r_tol):
+                res_trial = _residual(r_trial, trial, free, border)
+                norm_trial = _norm(res_trial)
+                if np.isfinite(norm_trial) and (norm_trial < norm or np.abs(res_trial).max() <= r_tol):
                     break
             else:
                 if fresh:
@@ -260,12 +326,14 @@ class EquilibriumSolver:
                 fact = None  # a stale tangent failed: refactor here and retry
                 continue
             ratio = norm_trial / norm if norm > 0 else 0.0
-            x, r, r_f, point, norm = trial, r_trial, r_trial_f, point_trial, norm_trial
+            x, r, res, point, norm = trial, r_trial, res_trial, point_trial, norm_trial
             # With contraction ratio q the remaining error is about |dx| q / (1 - q)
             # (a geometric series): that is what is tested against the tolerance.
-            step_size = alpha * np.abs(dx).max()
+            step_size = alpha * max(np.abs(dx).max(), np.abs(dw).max(initial=0.0))
             last_dx = step_size * ratio / (1.0 - ratio) if (alpha == 1.0 and ratio < 0.9) else step_size
-            if not s.modified_newton or ratio > s.contraction:
+            # A step that left the free residual alone (only the heights moved) says nothing
+            # about how good the tangent is.
+            if not s.modified_newton or (ratio > s.contraction and not (border is not None and border.skipped_solve)):
                 fact = None
             fresh = False
         return None
@@ -273,15 +341,23 @@ class EquilibriumSolver:
     # ------------------------------------------------------------------ load path
     def solve(self, x: np.ndarray, modes: tuple[str, ...], start_displacement: np.ndarray,
               displacement: np.ndarray, start_voltage: np.ndarray, voltage: np.ndarray,
-              check_stability: bool | None = None, cancel: Callable[[], bool] | None = None) -> tuple:
+              check_stability: bool | None = None, load: IndenterLoad | None = None,
+              detect_snaps: bool = True, guess: dict[int, float] | None = None,
+              cancel: Callable[[], bool] | None = None) -> tuple:
         """Equilibrium at (``displacement``, ``voltage``) starting from state ``x``.
 
         ``x`` is a converged state at (``start_displacement``, ``start_voltage``)
-        for driven units; it is not modified.  Returns the new positions, the
-        internal forces there, the :class:`~.assembly.PointState` there and
-        :class:`SolveStats`.  ``check_stability`` overrides the setting for this
-        solve.  Raises :class:`ConvergenceError`, or :class:`SolveCancelled` as soon as
-        ``cancel()`` (asked before every Newton iteration) returns True.
+        for driven units; it is not modified.  Biased units' disks must be flat in
+        ``x`` (:meth:`.membrane.MembraneModel.place_disk`); their heights are unknowns
+        pushed by ``load`` (required when a unit is biased), which sees the load-path
+        fraction ``t``.  Returns the new positions, the internal forces there, the
+        :class:`~.assembly.PointState` there and :class:`SolveStats`.
+        ``check_stability`` overrides the setting for this solve; ``detect_snaps``
+        turns the snap-through handling of biased paths on (quasi-static) or off (a
+        dynamic step).  ``guess`` gives starting heights [m] of biased units for the first
+        load step (a time integrator's prediction); the free dofs follow them through the
+        linear predictor.  Raises :class:`ConvergenceError`, or :class:`SolveCancelled` as soon
+        as ``cancel()`` (asked before every Newton iteration) returns True.
         """
         m, s = self.model, self.settings
         check = s.check_stability if check_stability is None else check_stability
@@ -290,6 +366,10 @@ class EquilibriumSolver:
         check = check or bool(np.abs(d1 - d0)[driven].max(initial=0.0) > s.long_jump * m.length_scale)
         prescribed, free = m.prescribed_dofs(modes)
         groups = self._groups(modes)
+        biased = [k for k, mode in enumerate(modes) if mode == BIASED]
+        if biased and load is None:
+            raise ValueError(f"units {[k + 1 for k in biased]} are biased: solve needs their load")
+        border = self._border(modes, prescribed, load) if biased else None
         stats = SolveStats()
         v0, v1 = np.asarray(start_voltage, float), np.asarray(voltage, float)
         x = x.copy()
@@ -299,24 +379,51 @@ class EquilibriumSolver:
         # Without slip it is exactly zero.
         frame = m.mesh.frame_nodes
         lag = x.reshape(-1, 3)[frame] - m.frame_positions(modes, d0)
-        start_stable = self.factorisation is None or self.factorisation.negative_pivots == 0
         fact = self.factorisation
-        if fact is None or not np.array_equal(fact.free, free):
+        if border is not None:
+            border.begin(0.0)
+        if fact is not None and np.array_equal(fact.free, free):
+            start_stable = negative_eigenvalues(fact, x, border, static=False) == 0
+        else:
+            start_stable = fact is None or fact.negative_pivots == 0
             # No tangent of this free set yet (a fresh twin, new unit modes): one at the
             # start state gives the linear predictor of the first step.
             fact = self._factorise(self._tangent(x, m.maxwell(v0)), free, prescribed)
             stats.factorisations += 1
             self.factorisation = fact
-        secant = self._secant(x, free, prescribed, d0, d1, v0, v1, modes) if not lag.any() else None
+        secant = (self._secant(x, free, prescribed, d0, d1, v0, v1, modes)
+                  if not lag.any() and border is None else None)
+        # A quasi-static change of only the biased units' loads (force, bias): its load change.
+        loads_only = (border is not None and not guess and not lag.any() and np.array_equal(v0, v1)
+                      and np.array_equal(d0[[k for k, md in enumerate(modes) if md == DRIVEN]],
+                                         d1[[k for k, md in enumerate(modes) if md == DRIVEN]]))
+        load_change = border.load_change(border.heights(x), 0.0, 1.0) if loads_only else None
+        heights_secant = self._heights_secant(x, free, v0, border, load_change) if loads_only else None
         x_start = x
-        done, step, cuts, retries = 0.0, 1.0, 0, 0
+        done, step, cuts, retries, snap_tried = 0.0, 1.0, 0, 0, -1.0
         while done < 1.0:
             t = min(1.0, done + step)
             trial = x.copy()
             m.apply_prescribed(trial, modes, d0 + t * (d1 - d0))
             if lag.any():
                 trial.reshape(-1, 3)[frame] += (1.0 - t) * lag
+            if guess and done == 0.0:
+                for k, w in guess.items():
+                    trial[m.disk_z_dofs(k)] = w
+            continued = t == 1.0 and done == 0.0 and heights_secant is not None
+            if border is not None:
+                border.begin(t)
+                if continued:  # the last loads, continued: free dofs and heights move together
+                    scale, dx_last, dw_last = heights_secant
+                    trial[free] += scale * dx_last
+                    border.move(trial, scale * dw_last)
+                    border.predicted = scale * dw_last
+                else:
+                    border.predict(fact, trial, done)
             change = trial[prescribed] - x[prescribed]
+            if continued:  # the secant moved the free dofs with the heights already
+                for group in border.groups:
+                    change[group] = 0.0
             if t == 1.0 and done == 0.0 and secant is not None:  # the last solve's path, continued
                 scale, dx_last, dp_last = secant
                 if fact.state is not None and fact.state is self._last_path[0]:  # tangent at x: quadratic
@@ -326,28 +433,52 @@ class EquilibriumSolver:
                     trial[free] += scale * dx_last
                     change = change - scale * dp_last
             trial[free] += fact.predict(change, groups)  # linear predictor from the last tangent
-            outcome = self._newton(trial, free, prescribed, m.maxwell(v0 + t * (v1 - v0)), fact, stats, cancel)
+            maxwell = m.maxwell(v0 + t * (v1 - v0))
+            outcome = self._newton(trial, free, prescribed, maxwell, fact, stats, cancel, border)
+            if outcome is not None and border is not None and detect_snaps and self._jumped(border, x, outcome[0]):
+                if t - done > s.snap_step:  # maybe another branch: retry in halves
+                    retries += 1
+                    stats.step_cuts = cuts + retries
+                    step = 0.5 * (t - done)
+                    continue
+                outcome = None  # a jump over the shortest step: a limit point, landed below
             if outcome is None:
+                # A stalled path of biased units may be a limit point: once the step is short,
+                # look for the branch it jumps to (once per point reached), whatever the cuts so far.
+                can_snap = border is not None and detect_snaps and snap_tried != done
+                if can_snap and t - done <= s.snap_step:
+                    snap_tried = done
+                    landing = land_after_snap(self, trial, free, prescribed, maxwell, border, stats, cancel)
+                    if landing is not None:
+                        x_new, r, point, fact, unit = landing
+                        stats.snaps.append(Snap(int(unit), float(x[m.disk_z_dofs(unit)[0]]),
+                                                float(x_new[m.disk_z_dofs(unit)[0]]), t))
+                        x, done, step = x_new, t, s.snap_step
+                        stats.steps += 1
+                        self.factorisation = fact
+                        continue
+                    can_snap = False
                 cuts += 1
                 stats.step_cuts = cuts + retries
-                if cuts > s.max_step_cuts:
+                if cuts > s.max_step_cuts and not can_snap:
                     reached_d, reached_v = d0 + done * (d1 - d0), v0 + done * (v1 - v0)
                     raise ConvergenceError(
                         f"Newton failed to converge after {cuts - 1} step cuts: reached {done:.3g} of the load "
                         f"path (displacement {np.round(reached_d, 9).tolist()} m, voltage "
                         f"{np.round(reached_v, 3).tolist()} V) on the way to displacement {d1.tolist()} m, "
                         f"voltage {v1.tolist()} V; beyond it the membrane may have no stable equilibrium "
-                        f"(e.g. electromechanical instability at high voltage)")
+                        f"(e.g. electromechanical instability at high voltage)"
+                        + (f"; the last refused trial: {border.outside}" if border is not None and border.outside
+                           else ""))
                 step *= 0.5
                 fact = self.factorisation if (self.factorisation is not None
                                               and np.array_equal(self.factorisation.free, free)) else None
                 continue
             x_new, r, point, fact_used = outcome
             if check or fact_used is None:
-                fact_new = self._factorise(self._tangent(x_new, m.maxwell(v0 + t * (v1 - v0))), free, prescribed)
-                fact_new.state = x_new
-                stats.factorisations += 1
-                if start_stable and fact_new.negative_pivots > 0 and t - done > s.unstable_step:
+                fact_new = self.factorise_at(x_new, maxwell, free, prescribed, stats)
+                if (start_stable and negative_eigenvalues(fact_new, x_new, border, static=False) > 0
+                        and t - done > s.unstable_step):
                     retries += 1  # a long step onto an unstable state: retry it in halves
                     stats.step_cuts = cuts + retries  # (not a Newton failure: max_step_cuts counts those)
                     step = 0.5 * (t - done)
@@ -359,8 +490,19 @@ class EquilibriumSolver:
             step = min(2.0 * step, 1.0)
             self.factorisation = fact
         stats.stability_checked = check
-        self._last_path = (x, x[free] - x_start[free], x[prescribed] - x_start[prescribed], free, v1)
+        if check:
+            stats.negative_eigenvalues = negative_eigenvalues(fact, x, border)
+        dw = border.heights(x) - border.heights(x_start) if border is not None else None
+        self._last_path = (x, x[free] - x_start[free], x[prescribed] - x_start[prescribed], free, v1,
+                           load_change, dw)
         return x, r, point, stats
+
+    def _jumped(self, border: IndenterBorder, x_old: np.ndarray, x_new: np.ndarray) -> bool:
+        """Whether a biased height moved ``jump_tol * D`` away from its step's linear prediction."""
+        if border.first_dw is None:
+            return False
+        predicted = border.heights(x_old) + border.predicted + border.first_dw
+        return bool(np.abs(border.heights(x_new) - predicted).max() > self.settings.jump_tol * self.model.length_scale)
 
     def _secant(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, d0: np.ndarray, d1: np.ndarray,
                 v0: np.ndarray, v1: np.ndarray, modes: tuple[str, ...]) -> tuple | None:
@@ -386,3 +528,31 @@ class EquilibriumSolver:
             return None
         scale = float(np.sum(dp_new * dp)) / norm2
         return (scale, last[1], dp) if abs(scale) <= 2.0 else None
+
+    def _heights_secant(self, x: np.ndarray, free: np.ndarray, voltage: np.ndarray, border: IndenterBorder,
+                        load_change: np.ndarray) -> tuple | None:
+        """``(s, dx_f, dw)`` when this solve continues the last one with the biased loads only.
+
+        As :meth:`_secant`, for a change ``dG = s dG_last`` of the biased units' loads
+        (force commands, biases) with everything else held: ``x_f + s dx_f``, ``w + s dw``
+        — exact for a reversal, second-order along a smooth command path.
+        """
+        last = self._last_path
+        if (last is None or last[5] is None or last[0] is not x and not np.array_equal(last[0], x)
+                or not np.array_equal(last[3], free) or not np.array_equal(last[4], voltage)
+                or last[5].shape != load_change.shape):
+            return None
+        norm2 = float(last[5] @ last[5])
+        if norm2 == 0.0:
+            return None
+        scale = float(load_change @ last[5]) / norm2
+        if abs(scale) > 2.0 or np.abs(load_change - scale * last[5]).max() > 1e-9 * np.abs(load_change).max():
+            return None
+        return scale, last[1], last[6]
+
+
+def _residual(r: np.ndarray, x: np.ndarray, free: np.ndarray, border: IndenterBorder | None) -> np.ndarray:
+    """The residual Newton drives to zero: ``r_f``, and the biased heights' ``R_w`` after it."""
+    if border is None:
+        return r[free]
+    return np.concatenate([r[free], border.residual(r, x)])

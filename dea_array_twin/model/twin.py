@@ -1,9 +1,22 @@
 """The array's digital twin: the membrane model plus its current state.
 
-:class:`ArrayTwin` is what users, the ROS node, replay and studies talk to: give it
-per-unit displacements [m], voltages [V] and modes, get a :class:`TwinResult` with
-per-unit force [N] and capacitance [F].  It keeps the last converged state and the
-tangent factorisation there, so a small change of command is a warm update.
+:class:`ArrayTwin` is what users, the ROS node, replay and studies talk to.  Each unit
+is ``driven`` (its indenter position imposed: the paper's characterisation rig),
+``free`` (no indenter) or ``biased`` (its indenter rides on a bias element: an actuator
+unit, section 2 of the paper).  Give it per-unit displacements [m] (driven units),
+voltages [V] and external forces [N] (biased units); :meth:`ArrayTwin.solve` returns
+the quasi-static equilibrium, :meth:`ArrayTwin.step` advances biased units with a
+moving mass by one time step (:mod:`.dynamics`).  Both give a :class:`TwinResult` with
+per-unit position, velocity, force [N] and capacitance [F].  The twin keeps the last
+state and the tangent factorisation there, so a small change of command is a warm
+update.
+
+Unilateral contact (config ``contact``): an indenter can push the membrane but not pull
+it.  When a solve needs a negative force from it, the disk is released (a homotopy of
+its force to zero, :mod:`.actuator`) and the unit is free; a driven indenter stays at
+its command, a biased one moves to where its bias and force balance (or, with mass,
+flies).  When the membrane's centre comes down to the indenter, contact resumes.  The
+contact is all or nothing over the flat disk.
 """
 
 from __future__ import annotations
@@ -14,11 +27,21 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .actuator import ActuatorLoad, UnitLoad, free_flight, rest_position
+from .bias import NoBias
 from .config import ArrayConfig
-from .membrane import DRIVEN, FREE, MembraneModel
+from .dynamics import NewmarkStep
+from .membrane import BIASED, DRIVEN, FREE, MembraneModel, held
+from .snap import Snap
 from .solver import ConvergenceError, EquilibriumSolver, NewtonSettings, SolveCancelled
 
-__all__ = ["ArrayTwin", "TwinResult", "ConvergenceError", "DRIVEN", "FREE", "SolveCancelled", "command_error"]
+__all__ = ["ArrayTwin", "TwinResult", "ConvergenceError", "BIASED", "DRIVEN", "FREE", "SolveCancelled",
+           "command_error"]
+
+#: Contact switches (lift-off, release, touch-down) one solve may make before it gives up.
+MAX_CONTACT_SWITCHES = 6
+#: Times a dynamic step that fails to converge is split in halves.
+MAX_SUBSTEP_LEVELS = 6
 
 
 @dataclass(frozen=True)
@@ -28,14 +51,17 @@ class TwinResult:
     Attributes
     ----------
     displacement : ndarray
-        Commanded indenter displacement per unit [m] (free units: their centre deflection).
+        Position of each unit [m]: its indenter's height (the command of a driven
+        unit, ``w`` of a biased one, also when lifted off) or, for a free unit, its
+        centre deflection.  Also :attr:`position`.
     voltage : ndarray
         Voltage per unit [V].
     modes : tuple of str
-        ``"driven"`` or ``"free"`` per unit.
+        ``"driven"``, ``"free"`` or ``"biased"`` per unit.
     force : ndarray
         Axial force on each indenter [N], eq. 10; positive when the membrane pulls
-        the indenter back towards the plane; 0 for free units.
+        the indenter back towards the plane; 0 for free and lifted-off units.  At a
+        biased unit's equilibrium it equals ``bias_force + external_force``.
     capacitance : ndarray
         Capacitance of each unit [F], eq. 7, whole electrode.
     delta_capacitance : ndarray
@@ -44,6 +70,19 @@ class TwinResult:
         Out-of-plane position of each unit centre [m].
     peak_field : ndarray
         Largest true electric field ``V / (t0 l3)`` on each electrode [V/m].
+    velocity : ndarray
+        ``dw/dt`` of each unit [m/s] after a :meth:`ArrayTwin.step` (Newmark velocity of
+        a biased indenter with mass, the position's difference quotient otherwise); 0
+        after a quasi-static solve.
+    bias_force : ndarray
+        ``B_k(w_k)`` of each biased unit's bias element [N]; 0 for other units.
+    external_force : ndarray
+        Commanded external force ``f_k`` on each biased indenter [N]; 0 for other units.
+    lifted_off : ndarray of bool
+        Per unit, whether its indenter (with ``contact``) has lost the membrane.
+    snaps : tuple of Snap
+        Snap-throughs on the way to this state (quasi-static solves):
+        which unit, from where to where (:mod:`.snap`).
     positions : ndarray, shape (n_nodes, 3)
         Deformed node positions [m].
     energy : float
@@ -56,8 +95,9 @@ class TwinResult:
     field_exceeded : bool
         Some ``peak_field`` is above the configured ``breakdown_field``.
     stable : bool or None
-        The tangent at the state is positive definite (a stable minimum); ``None`` if
-        not checked.
+        The tangent at the state is positive definite (a stable minimum; for biased
+        units with their bias stiffness ``-dB/dw``, without inertia); ``None`` if not
+        checked.
     iterations, factorisations, step_cuts : int
         Newton iterations, tangent factorisations and load-step halvings of the solve.
     residual : float
@@ -74,6 +114,11 @@ class TwinResult:
     delta_capacitance: np.ndarray
     centre_deflection: np.ndarray
     peak_field: np.ndarray
+    velocity: np.ndarray
+    bias_force: np.ndarray
+    external_force: np.ndarray
+    lifted_off: np.ndarray
+    snaps: tuple
     positions: np.ndarray
     energy: float
     min_principal_stress: float
@@ -85,6 +130,24 @@ class TwinResult:
     step_cuts: int
     residual: float
     solve_time: float
+
+    @property
+    def position(self) -> np.ndarray:
+        """Position of each unit [m]: indenter height (driven, biased) or centre deflection (free)."""
+        return self.displacement
+
+    @property
+    def snapped(self) -> np.ndarray:
+        """Per unit, whether it snapped through on the way to this state."""
+        out = np.zeros(len(self.modes), dtype=bool)
+        out[[snap.unit for snap in self.snaps]] = True
+        return out
+
+    @property
+    def events(self) -> list[str]:
+        """Human-readable snap-throughs and lift-offs (physical events, not model faults)."""
+        lifted = [f"unit {k + 1}: indenter lifted off the membrane" for k in np.flatnonzero(self.lifted_off)]
+        return [snap.describe() for snap in self.snaps] + lifted
 
     @property
     def flags(self) -> tuple[str, ...]:
@@ -109,15 +172,18 @@ class TwinResult:
 def command_error(kind: str, values: Sequence[float], cfg: ArrayConfig) -> str | None:
     """Why a command the node or a replay would reject is invalid, or None.
 
-    ``kind`` is "displacement" or "voltage".  Stricter than :meth:`ArrayTwin.solve`
-    (which solves any finite command within ``max_displacement``): a voltage must
-    also be >= 0 and keep the flat pre-stretched field below ``breakdown_field``."""
+    ``kind`` is "displacement", "voltage" or "force".  Stricter than
+    :meth:`ArrayTwin.solve` (which solves any finite command within
+    ``max_displacement``): a voltage must also be >= 0 and keep the flat
+    pre-stretched field below ``breakdown_field``.  A force [N] may take any finite value."""
     n = cfg.n_units
     if len(values) != n:
         return f"{kind} command has {len(values)} values, expected {n} (one per unit)"
     arr = np.asarray(values, dtype=float)
     if not np.all(np.isfinite(arr)):
         return f"{kind} command contains NaN or inf: {arr.tolist()}"
+    if kind == "force":
+        return None
     if kind == "displacement":
         limit = cfg.scaled("max_displacement")
         if np.any(np.abs(arr) > limit):
@@ -132,13 +198,15 @@ def command_error(kind: str, values: Sequence[float], cfg: ArrayConfig) -> str |
     return None
 
 
+
 class ArrayTwin:
     """A live twin of the array described by ``config``.
 
     Parameters
     ----------
     config : ArrayConfig, optional
-        The array; the paper's 1-by-3 default if omitted.
+        The array; the paper's 1-by-3 default if omitted.  Its ``unit_modes``,
+        ``bias``, ``mass``, ``damping`` and ``contact`` describe the units.
     settings : NewtonSettings, optional
         Solver tolerances.
 
@@ -162,12 +230,21 @@ class ArrayTwin:
         return self.model.n_units
 
     def reset(self) -> None:
-        """Return to the flat pre-stretched state at 0 V, all units driven at 0 m."""
+        """Return to the flat pre-stretched state at 0 V and 0 N, every indenter held at 0 m.
+
+        The next call uses the config's ``unit_modes`` unless given others; a biased
+        unit is then released from 0 m onto its bias."""
         n = self.n_units
         self._x = self.model.flat_state()
-        self._modes: tuple[str, ...] = (DRIVEN,) * n
-        self._displacement = np.zeros(n)
+        self._held: tuple[str, ...] = (DRIVEN,) * n  # how the stored state holds each unit (lifted: free)
+        self._modes: tuple[str, ...] = self.config.modes  # the commanded modes, default of the next call
         self._voltage = np.zeros(n)
+        self._force = np.zeros(n)  # commanded external force on biased indenters [N]
+        self._height = np.zeros(n)  # indenter height (driven: command, biased: w), free: centre [m]
+        self._velocity = np.zeros(n)
+        self._acceleration = np.zeros(n)
+        self._lifted = np.zeros(n, dtype=bool)
+        self._membrane_force = np.zeros(n)
         self.solver.factorisation = None
         self.last: TwinResult | None = None
 
@@ -183,22 +260,38 @@ class ArrayTwin:
             raise ValueError(f"{name} must be finite, got {arr.tolist()}")
         return arr
 
+    def _commands(self, displacement, voltage, force, modes) -> tuple:
+        """Commands with the previous ones as defaults, checked."""
+        d1 = self._vector("displacement", displacement, self._height)
+        v1 = self._vector("voltage", voltage, self._voltage)
+        f1 = self._vector("force", force, self._force)
+        modes = self.model.check_modes(modes if modes is not None else self._modes)
+        limit = self.config.scaled("max_displacement")
+        driven = np.array(modes) == DRIVEN
+        if np.any(np.abs(d1[driven]) > limit):
+            raise ValueError(f"displacement {d1.tolist()} m exceeds max_displacement ({limit} m)")
+        return d1, v1, f1, modes
+
     def solve(self, displacement: Sequence[float] | float | None = None,
               voltage: Sequence[float] | float | None = None,
               modes: Sequence[str] | None = None, check_stability: bool | None = None,
-              cancel: Callable[[], bool] | None = None) -> TwinResult:
-        """Move the twin to a new command and return the equilibrium there.
+              cancel: Callable[[], bool] | None = None, force: Sequence[float] | float | None = None) -> TwinResult:
+        """Move the twin to a new command and return the quasi-static equilibrium there.
+
+        The commands change linearly from the previous ones (a quasi-static path):
+        biased units follow their equilibrium branch, and one that passes a limit
+        point snaps through to the stable branch it jumps to (``result.snaps``).
 
         Parameters
         ----------
         displacement : sequence of float, optional
-            Indenter displacement d_k per unit [m] (ignored for free units);
+            Indenter displacement d_k per driven unit [m] (ignored for other units);
             default: the previous command.
         voltage : sequence of float or float, optional
             Voltage per unit [V]; default: the previous one.
         modes : sequence of str, optional
-            ``"driven"`` or ``"free"`` per unit; default: the previous modes
-            (all driven after :meth:`reset`).
+            ``"driven"``, ``"free"`` or ``"biased"`` per unit; default: the previous
+            modes (the config's ``unit_modes`` after :meth:`reset`).
         check_stability : bool, optional
             Factor the tangent at the new state and report whether it is a stable
             minimum (``result.stable``); default: the solver setting.  Costs one
@@ -208,6 +301,9 @@ class ArrayTwin:
             Asked with no arguments before every Newton iteration; when it returns
             True the solve is abandoned (e.g. past a time budget, or for a newer
             request).  Called from the thread that runs the solve.
+        force : sequence of float or float, optional
+            External force f_k on each biased indenter towards +z [N] (ignored for
+            other units); default: the previous one (0 after :meth:`reset`).
 
         Raises
         ------
@@ -220,37 +316,159 @@ class ArrayTwin:
             For a command of the wrong length or with NaN/inf.
         """
         tic = time.perf_counter()
-        cfg, model = self.config, self.model
-        d1 = self._vector("displacement", displacement, self._displacement)
-        v1 = self._vector("voltage", voltage, self._voltage)
-        modes = model.check_modes(modes if modes is not None else self._modes)
-        limit = cfg.scaled("max_displacement")
-        if np.any(np.abs(d1) > limit):
-            raise ValueError(f"displacement {d1.tolist()} m exceeds max_displacement ({limit} m)")
-        centre = self._x.reshape(-1, 3)[model.mesh.centre_nodes, 2]
-        # A unit that becomes driven starts from where its centre is now.
-        d0 = np.where(np.array(self._modes) == DRIVEN, self._displacement, centre)
+        d1, v1, f1, modes = self._commands(displacement, voltage, force, modes)
+        return self._advance(d1, v1, f1, modes, check_stability, None, tic, cancel)
+
+    def step(self, dt: float, displacement: Sequence[float] | float | None = None,
+             voltage: Sequence[float] | float | None = None, force: Sequence[float] | float | None = None,
+             modes: Sequence[str] | None = None, check_stability: bool | None = None,
+             cancel: Callable[[], bool] | None = None) -> TwinResult:
+        """Advance the dynamics by ``dt`` [s] with the commands held at their new values.
+
+        Biased units with ``mass > 0`` move by ``m w'' + c w' = B(w) + f - F(w, V)``
+        (Newmark average acceleration, one Newton solve per step, :mod:`.dynamics`);
+        the membrane and massless units are quasi-static.  A step that fails to
+        converge is split in halves (up to 6 times).  Arguments as :meth:`solve`.
+        """
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a finite time step > 0 s, got {dt}")
+        tic = time.perf_counter()
+        d1, v1, f1, modes = self._commands(displacement, voltage, force, modes)
+        return self._substeps(dt, d1, v1, f1, modes, check_stability, tic, 0, cancel)
+
+    def _substeps(self, dt: float, d1, v1, f1, modes, check, tic: float, level: int, cancel) -> TwinResult:
         try:
-            x, r, point, stats = self.solver.solve(self._x, modes, d0, d1, self._voltage, v1, check_stability, cancel)
+            return self._advance(d1, v1, f1, modes, check, dt, tic, cancel)
+        except ConvergenceError:
+            if level >= MAX_SUBSTEP_LEVELS:
+                raise
+            self._substeps(0.5 * dt, d1, v1, f1, modes, check, tic, level + 1, cancel)
+            return self._substeps(0.5 * dt, d1, v1, f1, modes, check, tic, level + 1, cancel)
+
+    # ------------------------------------------------------------------ one update
+    def _advance(self, d1: np.ndarray, v1: np.ndarray, f1: np.ndarray, modes: tuple[str, ...],
+                 check: bool | None, dt: float | None, tic: float, cancel=None) -> TwinResult:
+        """Solve (``dt`` None) or step to the commands; commit the state only when it succeeded.
+
+        After a failure (:class:`ConvergenceError`, :class:`SolveCancelled`) the solver's
+        tangent is one of a state on the way, not of the state kept: the next solve
+        factors afresh."""
+        try:
+            return self._attempt(d1, v1, f1, modes, check, dt, tic, cancel)
         except (ConvergenceError, SolveCancelled):
-            # The solver's tangent is now one at a step on the way (and the one at the state
-            # kept may have been overwritten in its factor slot): the next solve factors afresh.
             self.solver.factorisation = None
             raise
-        self._x, self._modes, self._voltage = x, modes, v1
-        out = model.outputs(x, r, point, v1, modes)
-        self._displacement = np.where(np.array(modes) == DRIVEN, d1, out.centre_deflection)
-        fact = self.solver.factorisation
+
+    def _attempt(self, d1: np.ndarray, v1: np.ndarray, f1: np.ndarray, modes: tuple[str, ...],
+                 check: bool | None, dt: float | None, tic: float, cancel) -> TwinResult:
+        """One update with its contact switches (see :meth:`_advance`)."""
+        cfg, model, n = self.config, self.model, self.n_units
+        laws, mass = cfg.per_unit("bias"), cfg.per_unit("mass")
+        contact = np.array([c and held(m) for c, m in zip(cfg.per_unit("contact"), modes)])
+        newmark = {}
+        if dt is not None:
+            damping = cfg.per_unit("damping")
+            state = zip(self._height, self._velocity, self._acceleration)
+            newmark = {k: NewmarkStep(mass[k], damping[k], dt, w, v, a)
+                       for k, (w, v, a) in enumerate(state) if modes[k] == BIASED and mass[k] > 0}
+        lifted = self._lifted & contact
+        releasing = np.zeros(n, dtype=bool)
+        x, held_as, v0, f0 = self._x, self._held, self._voltage, self._force
+        heights, forces = self._height.copy(), self._membrane_force
+        snaps: list[Snap] = []
+        tolerance = self.solver.settings.residual_tol * model.force_scale
+        for _ in range(MAX_CONTACT_SWITCHES + 1):
+            as_solved = tuple(BIASED if releasing[k] else FREE if lifted[k] else modes[k] for k in range(n))
+            x_start = x.copy()
+            centre = x_start.reshape(-1, 3)[model.mesh.centre_nodes, 2]
+            d0 = np.where(np.array(held_as) == DRIVEN, heights, centre)
+            loads = {}
+            for k in np.flatnonzero(np.array(as_solved) == BIASED):
+                if releasing[k]:  # its indenter lets go: the disk's force goes to 0
+                    loads[k] = UnitLoad(NoBias(), 0.0, 0.0, held_force=forces[k])
+                elif held_as[k] == BIASED:
+                    loads[k] = UnitLoad(laws[k], f0[k], f1[k], newmark=newmark.get(k))
+                else:  # placed on its bias now: from where the indenter is
+                    model.place_disk(x_start, k, heights[k] if k in newmark else centre[k])
+                    start = forces[k] if held_as[k] == DRIVEN else 0.0
+                    loads[k] = UnitLoad(laws[k], f1[k], f1[k], held_force=None if k in newmark else start,
+                                        newmark=newmark.get(k))
+            detect = dt is None or any(m == BIASED and k not in newmark for k, m in enumerate(as_solved))
+            # Newmark units start at the constant-acceleration prediction w + dt v + dt^2 a / 2.
+            guess = {k: step.w + dt * step.v + 0.5 * dt**2 * step.a for k, step in newmark.items()
+                     if as_solved[k] == BIASED and held_as[k] == BIASED}
+            x_new, r, point, stats = self.solver.solve(x_start, as_solved, d0, d1, v0, v1, check,
+                                                       ActuatorLoad(loads) if loads else None, detect, guess,
+                                                       cancel)
+            snaps += stats.snaps
+            out = model.outputs(x_new, r, point, v1, as_solved)
+            heights = np.where(np.array(as_solved) == DRIVEN, d1, out.centre_deflection)
+            for k in np.flatnonzero(lifted & (np.array(modes) == DRIVEN)):
+                heights[k] = d1[k]
+            switched = False
+            for k in np.flatnonzero(contact):
+                if releasing[k]:  # released: free from now on
+                    releasing[k], lifted[k], switched = False, True, True
+                elif not lifted[k] and out.force[k] < -tolerance:
+                    releasing[k], switched = True, True
+                elif lifted[k]:
+                    indenter = self._indenter(k, modes[k], laws[k], f1[k], d1[k], self._height[k],
+                                              out.centre_deflection[k], newmark.get(k), dt)
+                    if indenter is None or out.centre_deflection[k] < indenter:
+                        lifted[k], switched = False, True
+                    else:
+                        heights[k] = indenter
+            if not switched:
+                break
+            x, held_as, v0, f0, forces = x_new, as_solved, v1, f1, out.force
+        else:
+            raise ConvergenceError(f"the contact of units {[k + 1 for k in np.flatnonzero(contact)]} did not "
+                                   f"settle after {MAX_CONTACT_SWITCHES} switches between lift-off and touch-down")
+        return self._commit(x_new, as_solved, modes, heights, v1, f1, out, point, stats, lifted, snaps, newmark,
+                            dt, tic)
+
+    def _indenter(self, k: int, mode: str, law, force: float, command: float, previous: float, membrane: float,
+                  newmark: NewmarkStep | None, dt: float | None) -> float | None:
+        """Height [m] of the lifted-off indenter of unit ``k``, or None if it is back on the membrane."""
+        if mode == DRIVEN:
+            return command
+        cfg, model = self.config, self.model
+        try:
+            if newmark is not None:
+                return free_flight(UnitLoad(law, force, force, newmark=newmark),
+                                   self.solver.settings.increment_tol * model.length_scale)
+            return rest_position(law, force, previous, membrane, cfg.scaled("max_displacement"),
+                                 self.solver.settings.snap_march * model.length_scale)
+        except ValueError as exc:
+            raise ConvergenceError(f"unit {k + 1}: {exc}") from None
+
+    def _commit(self, x, as_solved, modes, heights, v1, f1, out, point, stats, lifted, snaps, newmark, dt,
+                tic) -> TwinResult:
+        """Store the new state and return it as a :class:`TwinResult`."""
+        cfg, model, n = self.config, self.model, self.n_units
+        laws = cfg.per_unit("bias")
+        biased = np.array(modes) == BIASED
+        velocity, acceleration = np.zeros(n), np.zeros(n)
+        if dt is not None:
+            velocity = (heights - self._height) / dt
+            for k, step in newmark.items():
+                velocity[k], acceleration[k] = step.velocity(heights[k]), step.acceleration(heights[k])
+        self._x, self._held, self._modes = x, as_solved, modes
+        self._voltage, self._force, self._height = v1, np.where(biased, f1, 0.0), heights
+        self._velocity, self._acceleration, self._lifted = velocity, acceleration, lifted
+        self._membrane_force = out.force
         stable = None
-        if stats.stability_checked and fact is not None and fact.negative_pivots >= 0:
-            stable = fact.negative_pivots == 0
-        energy = model.energy(point, v1)
+        if stats.stability_checked and stats.negative_eigenvalues >= 0:
+            stable = stats.negative_eigenvalues == 0
         self.last = TwinResult(
-            displacement=self._displacement.copy(), voltage=v1, modes=modes, force=out.force,
+            displacement=heights.copy(), voltage=v1, modes=modes, force=out.force,
             capacitance=out.capacitance, delta_capacitance=out.capacitance - model.flat_capacitance,
-            centre_deflection=out.centre_deflection, peak_field=out.peak_field,
-            positions=x.reshape(-1, 3).copy(), energy=energy, min_principal_stress=out.min_principal_stress,
-            wrinkled=out.min_principal_stress < 0, field_exceeded=bool(np.any(out.peak_field > cfg.breakdown_field)),
-            stable=stable, iterations=stats.iterations, factorisations=stats.factorisations,
-            step_cuts=stats.step_cuts, residual=stats.residual_norm, solve_time=time.perf_counter() - tic)
+            centre_deflection=out.centre_deflection, peak_field=out.peak_field, velocity=velocity,
+            bias_force=np.array([laws[k].force(heights[k]) if biased[k] else 0.0 for k in range(n)]),
+            external_force=self._force.copy(), lifted_off=lifted.copy(), snaps=tuple(snaps),
+            positions=x.reshape(-1, 3).copy(), energy=model.energy(point, v1),
+            min_principal_stress=out.min_principal_stress, wrinkled=out.min_principal_stress < 0,
+            field_exceeded=bool(np.any(out.peak_field > cfg.breakdown_field)), stable=stable,
+            iterations=stats.iterations, factorisations=stats.factorisations, step_cuts=stats.step_cuts,
+            residual=stats.residual_norm, solve_time=time.perf_counter() - tic)
         return self.last

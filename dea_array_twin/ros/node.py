@@ -42,9 +42,17 @@ from visualization_msgs.msg import Marker
 
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
-from ..model.membrane import DRIVEN, FREE, check_modes
+from ..model.membrane import FREE, MODES, check_modes
 from ..model.twin import ArrayTwin, TwinResult, command_error
-from .params import RUNTIME_FIELDS, coerce_doubles, config_descriptor, declare_number, declare_typed
+from .params import (
+    RUNTIME_FIELDS,
+    coerce_doubles,
+    config_descriptor,
+    config_from_parameters,
+    config_parameters,
+    declare_number,
+    declare_typed,
+)
 from .spin import spin_node
 from .updater import TwinUpdater
 
@@ -88,11 +96,7 @@ class TwinNode(Node):
             "seconds a solve may take while a newer command waits; past it the solve is abandoned for the newest "
             "command and the last good state kept; doubled after each consecutive abandonment; 0 = no limit "
             "(default: 5 update periods, 0.5 s at update_rate 0)")
-        modes = self.declare_parameter(  # dynamically typed: _on_set_parameters checks it and names it
-            "unit_modes", [DRIVEN] * n,
-            ParameterDescriptor(description="per unit 'driven' (indenter follows command/displacement) or "
-                                            "'free' (no indenter); default all driven", dynamic_typing=True)).value
-        self.modes = self._check_modes(modes)
+        self.modes = cfg.modes
         self.add_pre_set_parameters_callback(lambda params: coerce_doubles(params, RUNTIME_FIELDS))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -147,16 +151,24 @@ class TwinNode(Node):
             "config_file", "", ParameterDescriptor(description="twin config YAML; parameters below override it",
                                                    read_only=True)).value
         base = load_config(path or None)
+        defaults = config_parameters(base)
+        modes = self.declare_parameter(  # dynamically typed: _on_set_parameters checks it and names it
+            "unit_modes", defaults.pop("unit_modes"),
+            ParameterDescriptor(description="per unit 'driven' (indenter follows command/displacement), 'free' "
+                                            "(no indenter) or 'biased' (indenter on its bias element); default: "
+                                            "config_file's unit_modes, all driven", dynamic_typing=True)).value
         values = {name: declare_typed(self, name, default, config_descriptor(name, default))
-                  for name, default in base.to_dict().items()}
-        return ArrayConfig.from_dict(values)
+                  for name, default in defaults.items()}
+        values["unit_modes"] = list(self._check_modes(modes, base.n_units))
+        return config_from_parameters(values, base)
 
-    def _check_modes(self, modes: object) -> tuple[str, ...]:
+    def _check_modes(self, modes: object, n_units: int | None = None) -> tuple[str, ...]:
         """``modes`` as a tuple, or ConfigError naming ``unit_modes``."""
         if not isinstance(modes, (list, tuple)) or not all(isinstance(m, str) for m in modes):
-            raise ConfigError(f"unit_modes: expected a list of 'driven' or 'free', one per unit, got {modes!r}")
+            raise ConfigError(f"unit_modes: expected a list of {' or '.join(repr(m) for m in MODES)}, one per unit, "
+                              f"got {modes!r}")
         try:
-            return check_modes(modes, self.config.n_units)
+            return check_modes(modes, self.config.n_units if n_units is None else n_units)
         except ValueError as exc:
             raise ConfigError(f"unit_modes: {exc}") from None
 
@@ -181,6 +193,7 @@ class TwinNode(Node):
             self.updater.set_config(cfg)
         if modes is not None:
             self.modes = modes
+            self.config = self.config.replace(unit_modes=modes)
             self.updater.set_modes(modes)
         return SetParametersResult(successful=True)
 

@@ -18,6 +18,16 @@ The run-time doubles are dynamically typed so that the node's own check, which n
 the parameter and the allowed range, judges every value (a BOOL is refused by name,
 not by rclpy's bare type message); :func:`coerce_doubles` turns integers and numeric
 text into doubles before that check, so a parameter never changes its type.
+
+Per-unit fields are flattened to one array entry per unit (:func:`config_parameters`):
+``unit_modes`` (STRING_ARRAY, the node declares it dynamically typed and checks it
+itself), ``mass``, ``damping`` (DOUBLE_ARRAY), ``contact`` (BOOL_ARRAY), and the ``bias``
+list as ``bias.type`` (``none``, ``linear``, ``constant``, ``table``, ``sum``),
+``bias.stiffness`` [N/m], ``bias.free_position`` [m] and ``bias.force`` [N] (the fields of
+a linear or constant bias; 0 where a unit's law has no such field).  In a params file
+these are nested, ``bias: {type: [linear, none, linear], stiffness: [40.0, 0.0, 40.0],
+...}``.  A ``table`` or ``sum`` bias has no flat form: it comes only from the config
+file (``config_file``), and ``bias.type`` names it for that unit.
 """
 
 from __future__ import annotations
@@ -29,10 +39,14 @@ from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from ..model.config import ConfigError
+from ..model.bias import ConstantBias, LinearBias, NoBias
+from ..model.config import UNIT_FIELDS, ArrayConfig, ConfigError
 
 #: Config fields that may change while the node runs (limits, checked per command).
 RUNTIME_FIELDS = ("max_displacement", "breakdown_field")
+#: Parameters of the ``bias`` field and the attribute of the linear or constant law each holds.
+BIAS_PARAMETERS = {"bias.type": None, "bias.stiffness": ("linear", "stiffness"),
+                   "bias.free_position": ("linear", "free_position"), "bias.force": ("constant", "force_N")}
 
 _UNITS = {
     "length": "m", "width": "m", "frame_radius": "m", "electrode_diameter": "m", "spacing": "m",
@@ -41,19 +55,27 @@ _UNITS = {
     "breakdown_field": "V/m", "scale": "-", "epsr": "-", "prestretch": "-",
     "slip_displacement": "m", "slip_factor": "-",
     "experimental_hv_prestretch": "-", "experimental_hv_voltage": "V",
+    "mass": "kg per unit", "damping": "N s/m per unit",
+    "bias.stiffness": "N/m per unit", "bias.free_position": "m per unit", "bias.force": "N per unit",
 }
+_TEXT = {"contact": "per unit: the indenter only pushes (lifts off instead of pulling)",
+         "bias.type": "per unit bias law: none, linear, constant (table and sum from config_file only)"}
 _RANGES = {"rows": (1, 64), "cols": (1, 64), "element_order": (1, 2)}
 
 
 def config_descriptor(name: str, value: object) -> ParameterDescriptor:
     """Descriptor (description with unit, read-only flag, type, integer range) of a config field."""
     unit = _UNITS.get(name, "")
-    doc = f"ArrayConfig.{name}" + (f" [{unit}]" if unit else "")
+    doc = f"ArrayConfig.{name}" + (f" [{unit}]" if unit else "") + (f": {_TEXT[name]}" if name in _TEXT else "")
     desc = ParameterDescriptor(name=name, description=doc, read_only=name not in RUNTIME_FIELDS)
     if name in _RANGES:
         lo, hi = _RANGES[name]
         desc.integer_range = [IntegerRange(from_value=lo, to_value=hi, step=1)]
-    if isinstance(value, list):
+    if isinstance(value, list) and value and isinstance(value[0], str):
+        desc.type = ParameterType.PARAMETER_STRING_ARRAY
+    elif isinstance(value, list) and value and isinstance(value[0], bool):
+        desc.type = ParameterType.PARAMETER_BOOL_ARRAY
+    elif isinstance(value, list):
         desc.type = ParameterType.PARAMETER_DOUBLE_ARRAY
     elif isinstance(value, bool):
         desc.type = ParameterType.PARAMETER_BOOL
@@ -149,3 +171,58 @@ def coerce_doubles(params: Iterable[Parameter], names: Iterable[str]) -> list[Pa
                 pass
         out.append(p)
     return out
+
+
+def config_parameters(cfg: ArrayConfig) -> dict[str, Any]:
+    """The node's parameters of ``cfg``: every field, per-unit fields flattened to one entry per unit."""
+    out = {}
+    for name, value in cfg.to_dict().items():
+        if name == "bias":
+            laws = cfg.per_unit("bias")
+            out["bias.type"] = [law.kind for law in laws]
+            for key, field in BIAS_PARAMETERS.items():
+                if field is not None:
+                    out[key] = [float(getattr(law, field[1])) if law.kind == field[0] else 0.0 for law in laws]
+        elif name in UNIT_FIELDS:
+            out[name] = list(cfg.per_unit(name))
+        else:
+            out[name] = value
+    return out
+
+
+def config_from_parameters(values: dict[str, Any], base: ArrayConfig) -> ArrayConfig:
+    """The config of the node's parameter ``values`` (:func:`config_parameters`' names).
+
+    ``base`` is the config file's: a unit whose ``bias.type`` is ``table`` or ``sum``
+    takes its law from there.
+
+    Raises
+    ------
+    ConfigError
+        A bad value, or a table/sum bias the config file does not give; names the parameter.
+    """
+    values = dict(values)
+    kinds = values.pop("bias.type")
+    columns = {key: values.pop(key) for key, field in BIAS_PARAMETERS.items() if field is not None}
+    n = base.n_units
+    for key, column in [("bias.type", kinds)] + list(columns.items()):
+        if len(column) != n:
+            raise ConfigError(f"{key}: needs one entry per unit ({n}), got {len(column)}")
+    file_laws = base.per_unit("bias")
+    laws = []
+    for k, kind in enumerate(kinds):
+        if kind == "none":
+            laws.append(NoBias())
+        elif kind == "linear":
+            laws.append(LinearBias(columns["bias.stiffness"][k], columns["bias.free_position"][k]))
+        elif kind == "constant":
+            laws.append(ConstantBias(columns["bias.force"][k]))
+        elif kind in ("table", "sum") and file_laws[k].kind == kind:
+            laws.append(file_laws[k])
+        elif kind in ("table", "sum"):
+            raise ConfigError(f"bias.type[{k}]: a {kind} bias comes only from the config file (config_file), "
+                              f"which gives unit {k + 1} a {file_laws[k].kind} bias")
+        else:
+            raise ConfigError(f"bias.type[{k}]: must be one of none, linear, constant, table, sum; got {kind!r}")
+    values["bias"] = [law.to_dict() for law in laws]
+    return ArrayConfig.from_dict(values)

@@ -256,7 +256,7 @@ def test_node_with_a_slip_table_reports_the_cores_answer():
     ref = ArrayTwin(BASE.replace(**table)).solve([0.0, 0.012, 0.0], 0.0, FREE_CENTRE)
     params = dict(COARSE, **table, unit_modes=list(FREE_CENTRE), update_rate=50.0, marker_rate=0.0)
     with TwinHarness(parameters=params) as h:
-        assert h.twin_node.config == BASE.replace(**table)
+        assert h.twin_node.config == BASE.replace(**table, unit_modes=FREE_CENTRE)  # modes are config too
         h.send_displacement([0.0, 0.012, 0.0])
         cap = h.wait_for("capacitance", lambda m: m.data[1] == pytest.approx(ref.capacitance[1], rel=1e-7),
                          timeout=20)

@@ -1,0 +1,205 @@
+"""Heights of biased units' indenters as Newton unknowns: the bordered system and its inertia.
+
+A biased unit's rigid indenter disk sits at ``(lp X, lp Y, w_k)`` (eq. 9 with an unknown
+height ``w_k``).  Its disk dofs are counted as prescribed, so the free dofs and ``K_ff``
+are exactly those of driven mode, and each height adds one equation
+
+    R_w,k = F_k(x) - G_k(w_k) = 0,      F_k = 1_k^T r_p   (eq. 10),
+
+with ``G_k`` the generalised force pushing the indenter towards +z: ``B_k(w_k) + f_k``
+quasi-statically, ``B_k + f_k - m_k a_k(w_k) - c_k v_k(w_k)`` in a Newmark step
+(:mod:`.dynamics`).  This is stationarity of ``Pi = Pi_membrane - sum_k int G_k dw_k``,
+so Newton's system is symmetric,
+
+    [K_ff  K_fw] [dx_f]     [R_f]        K_fw = K_fp 1_k,
+    [K_wf  K_ww] [dw  ] = - [R_w],       K_ww = 1_k^T K_pp 1_j - diag(dG/dw),
+
+and is solved by block elimination with the influence vectors ``Y = K_ff^-1 K_fw``
+(cached per factorisation by :meth:`.solver.Factorisation.predict`):
+
+    S = K_ww - K_wf Y,     S dw = -R_w + K_wf K_ff^-1 R_f,     dx_f = -K_ff^-1 R_f - Y dw,
+
+one ``K_ff`` solve per iteration plus a dense ``n_b x n_b`` system.  Inertia
+(Haynsworth additivity): ``In(K) = In(K_ff) + In(S)``, so an equilibrium is a stable
+minimum when ``K_ff`` has no negative pivot and ``S`` no negative eigenvalue; ``S``
+carries the bias stiffness ``-dB/dw``.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, Sequence
+
+import numpy as np
+
+from .bias import BiasRangeError
+
+
+class IndenterLoad(Protocol):
+    """The generalised force ``G_k(w_k)`` [N] pushing a biased indenter towards +z."""
+
+    def __call__(self, unit: int, w: float, t: float) -> tuple[float, float]:
+        """``(G, dG/dw)`` of ``unit`` at height ``w`` [m] and load-path fraction ``t``.
+
+        Raises :class:`~.bias.BiasRangeError` outside a bias table."""
+
+    def static_slope(self, unit: int, w: float) -> float:
+        """``dB/dw`` [N/m] of ``unit`` (no inertial terms): the bias part of the stability check."""
+
+
+class IndenterBorder:
+    """The heights of biased units bordering the membrane's Newton system.
+
+    Build it with :meth:`for_units`.
+
+    Attributes
+    ----------
+    units : ndarray of int
+        The biased units (in contact).
+    dofs : list of ndarray
+        Global z dofs of each unit's disk.
+    groups : list of ndarray
+        The same dofs as indices into the partition's prescribed dofs.
+    load : IndenterLoad
+        ``G_k(w_k)`` and its derivative.
+    """
+
+    def __init__(self, units: np.ndarray, dofs: list[np.ndarray], groups: list[np.ndarray], load: IndenterLoad):
+        self.units, self.dofs, self.groups, self.load = np.asarray(units, dtype=int), dofs, groups, load
+        self.t = 1.0
+        #: The predictor's and the first Newton step's ``dw`` since :meth:`begin`: together the
+        #: linear prediction of the heights.
+        self.predicted = np.zeros(self.units.size)
+        self.first_dw: np.ndarray | None = None
+        #: Why the last trial outside a bias table was refused (for the error message), if any.
+        self.outside: str | None = None
+        #: Whether the last :meth:`direction` left the free residual alone (no ``K_ff`` solve).
+        self.skipped_solve = False
+        self._cache: tuple | None = None
+
+    @classmethod
+    def for_units(cls, model, units: Sequence[int], prescribed: np.ndarray, load: IndenterLoad) -> "IndenterBorder":
+        """The border of ``units`` of ``model`` in the partition with ``prescribed`` dofs (sorted)."""
+        dofs = [model.disk_z_dofs(k) for k in units]
+        return cls(np.asarray(units, dtype=int), dofs, [np.searchsorted(prescribed, d) for d in dofs], load)
+
+    def begin(self, t: float) -> None:
+        """Start a Newton solve at load-path fraction ``t``."""
+        self.t = t
+        self.first_dw = None
+        self.predicted = np.zeros(self.units.size)
+
+    def predict(self, fact, x: np.ndarray, t_from: float) -> None:
+        """Linear predictor of the heights for the load step from ``t_from`` to ``t``, in ``x``.
+
+        From an equilibrium at ``t_from`` the step changes ``R_w`` by ``-dG = -(G(w, t) -
+        G(w, t_from))`` at fixed heights, so ``dw = S^-1 dG`` (no ``K_ff`` solve); the free
+        dofs follow through the solver's influence-vector predictor.  Voltage changes are
+        not predicted (as for driven units).
+        """
+        w = self.heights(x)
+        try:
+            change = self.load_change(w, t_from, self.t)
+            if not change.any():
+                return
+            dw = np.linalg.solve(self.schur(fact, w), change)
+        except (np.linalg.LinAlgError, BiasRangeError):
+            return
+        self.move(x, dw)
+        self.predicted = dw
+
+    def load_change(self, w: np.ndarray, t_from: float, t_to: float) -> np.ndarray:
+        """``G(w, t_to) - G(w, t_from)`` [N] per unit at fixed heights ``w`` (the load step's change)."""
+        return np.array([self.load(k, wk, t_to)[0] - self.load(k, wk, t_from)[0] for k, wk in zip(self.units, w)])
+
+    def heights(self, x: np.ndarray) -> np.ndarray:
+        """The heights ``w_k`` [m] of the disks in ``x``."""
+        return np.array([x[d[0]] for d in self.dofs])
+
+    def membrane_force(self, r: np.ndarray) -> np.ndarray:
+        """``F_k = 1_k^T r_p`` [N] (eq. 10) from the internal forces ``r``."""
+        return np.array([r[d].sum() for d in self.dofs])
+
+    def residual(self, r: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """``R_w = F - G(w)`` [N]; NaN where ``w`` is outside a bias table (a failed trial)."""
+        g = []
+        for k, w in zip(self.units, self.heights(x)):
+            try:
+                g.append(self.load(k, w, self.t)[0])
+            except BiasRangeError as exc:
+                self.outside = f"unit {k + 1}: {exc}"
+                return np.full(self.units.size, np.nan)
+        return self.membrane_force(r) - np.array(g)
+
+    def move(self, x: np.ndarray, dw: np.ndarray) -> None:
+        """Raise the disks by ``dw`` [m] in ``x``, in place."""
+        for d, step in zip(self.dofs, dw):
+            x[d] += step
+
+    def _blocks(self, fact) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``Y = K_ff^-1 K_fw`` (n_f, n_b), ``K_wf`` (n_b, n_f) and the membrane ``K_ww``, per factorisation."""
+        if self._cache is None or self._cache[0] is not fact:
+            n_p = fact.k_fp.shape[1]
+            y = np.empty((fact.free.size, self.units.size))
+            for i, idx in enumerate(self.groups):
+                unit_move = np.zeros(n_p)
+                unit_move[idx] = 1.0
+                y[:, i] = -fact.predict(unit_move, [idx])
+            kwf = np.vstack([np.asarray(fact.k_fp[:, idx].sum(axis=1)).ravel() for idx in self.groups])
+            kww = fact.disk_stiffness[np.ix_(self.units, self.units)]
+            self._cache = (fact, y, kwf, kww)
+        return self._cache[1:]
+
+    def schur(self, fact, w: np.ndarray, static: bool = False) -> np.ndarray:
+        """``S = K_ww - K_wf K_ff^-1 K_fw`` at heights ``w`` (``static``: without inertial terms)."""
+        y, kwf, kww = self._blocks(fact)
+        if static:
+            slope = [self.load.static_slope(k, wk) for k, wk in zip(self.units, w)]
+        else:
+            slope = [self.load(k, wk, self.t)[1] for k, wk in zip(self.units, w)]
+        return kww - np.diag(slope) - kwf @ y
+
+    def direction(self, fact, r_f: np.ndarray, r_w: np.ndarray, x: np.ndarray,
+                  balanced: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
+        """The Newton step ``(dx_f, dw)`` by block elimination; None if ``S`` is singular.
+
+        When the free residual is already within ``balanced`` [N] (a converged membrane whose
+        indenters' loads changed: a force command, a bias, a time step) the ``K_ff`` solve
+        is skipped: the step is then the linear predictor ``dw = -S^-1 R_w, dx_f = -Y dw``.
+        """
+        y, kwf, _ = self._blocks(fact)
+        self.skipped_solve = np.abs(r_f).max(initial=0.0) <= balanced
+        z = np.zeros_like(r_f) if self.skipped_solve else fact.solve(r_f)
+        try:
+            dw = np.linalg.solve(self.schur(fact, self.heights(x)), -r_w + kwf @ z)
+        except (np.linalg.LinAlgError, BiasRangeError):
+            return None
+        if self.first_dw is None:
+            self.first_dw = dw
+        return -z - y @ dw, dw
+
+    def negative_eigenvalues(self, fact, x: np.ndarray, static: bool = True) -> int:
+        """Negative eigenvalues of ``S`` at ``x`` (``static``: without inertial terms).
+
+        Add ``K_ff``'s negative pivots for the inertia of the bordered tangent."""
+        return int(np.count_nonzero(np.linalg.eigvalsh(self.schur(fact, self.heights(x), static)) < 0))
+
+    def without(self, unit: int) -> "IndenterBorder | None":
+        """The same border without ``unit`` (held as driven), or None if it was the only one."""
+        keep = self.units != unit
+        if not keep.any():
+            return None
+        return IndenterBorder(self.units[keep], [d for d, k in zip(self.dofs, keep) if k],
+                              [g for g, k in zip(self.groups, keep) if k], self.load)
+
+
+def negative_eigenvalues(fact, x: np.ndarray, border: IndenterBorder | None, static: bool = True) -> int:
+    """Negative eigenvalues of the tangent at ``x``: ``K_ff``'s negative pivots plus the border's.
+
+    Haynsworth: ``In(K) = In(K_ff) + In(S)``.  ``static``: the border without inertial
+    terms (the stability of the configuration).  -1 if the pivots' inertia is unknown.
+    """
+    if fact.negative_pivots < 0:
+        return -1
+    if border is None:
+        return fact.negative_pivots
+    return fact.negative_pivots + border.negative_eigenvalues(fact, x, static)

@@ -1,0 +1,270 @@
+"""Verification of actuator mode (issue 11): biased units, bias laws, snap-through, contact, dynamics.
+
+Every biased answer is checked against something computed another way: root-finding
+and finite differences on *driven* solves (the characterisation rig, verified by the
+issue-2 tests), the analytic period and decay of a linear oscillator, and energy
+conservation.  Most checks use the single circular unit (286 P2 elements, ~30 ms a
+solve); contact uses the coarse 1-by-3.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from conftest import COARSE
+from scipy.optimize import brentq
+
+from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
+from dea_array_twin.model.bias import bias_from_entry
+from dea_array_twin.model.response import rest_state
+
+CIRCULAR = {"layout": "circular", "frame_radius": 0.025}
+#: Newton tolerances 100x tighter than the default, for the 1e-6 comparisons.
+TIGHT = NewtonSettings(residual_tol=1e-10, increment_tol=1e-9)
+#: A bistable dome on the circular unit (a table: B = 0.2035 + 0.08 tanh((w - 7 mm) / 1 mm) N):
+#: stable near 5 mm at 0 V; a voltage ramp takes that branch past a limit point near
+#: 2140 V and the unit snaps to about 10 mm.
+DOME_W = np.linspace(0.0, 0.016, 33)
+DOME = {"type": "table", "position": DOME_W.tolist(),
+        "force": (0.2035 + 0.08 * np.tanh((DOME_W - 0.007) / 0.001)).tolist()}
+NBS = {"type": "linear", "stiffness": -30.0, "free_position": 0.0007}
+
+
+def biased_twin(bias, settings=TIGHT, **changes):
+    return ArrayTwin(ArrayConfig(**{**CIRCULAR, "unit_modes": ["biased"], "bias": [bias], **changes}), settings)
+
+
+class DrivenCurve:
+    """F(w) of the circular unit from driven solves (the rig): the independent reference."""
+
+    def __init__(self, voltage):
+        self.twin = ArrayTwin(ArrayConfig(**CIRCULAR), TIGHT)
+        self.voltage = voltage
+
+    def force(self, w):
+        return self.twin.solve([w], [self.voltage], ["driven"], check_stability=False).force[0]
+
+    def stiffness(self, w, h=1e-6):
+        """dF/dw by a central difference over +-1 um (truncation ~ (h / 10 mm)^2)."""
+        return (self.force(w + h) - self.force(w - h)) / (2 * h)
+
+    def equilibrium(self, law, external, lo, hi):
+        """The root of F(w) - B(w) - f in [lo, hi] (Brent, 1e-13 m)."""
+        return brentq(lambda w: self.force(w) - law.force(w) - external, lo, hi, xtol=1e-13, rtol=1e-13)
+
+
+@pytest.mark.parametrize("bias, external, voltage, start, bracket", [
+    ({"type": "none"}, 0.2, 0.0, 0.0, (0.005, 0.010)),
+    ({"type": "linear", "stiffness": 40.0, "free_position": 0.020}, 0.0, 0.0, 0.0, (0.008, 0.014)),
+    ({"type": "linear", "stiffness": 40.0, "free_position": 0.020}, 0.0, 2730.0, 0.0, (0.008, 0.014)),
+    (NBS, 0.0, 0.0, 0.006, (0.0055, 0.0075)),
+    ({"type": "constant", "force": 0.3}, 0.0, 0.0, 0.0, (0.007, 0.012)),
+    (DOME, 0.0, 0.0, 0.005, (0.0045, 0.0055)),
+    ({"type": "sum", "terms": [{"type": "linear", "stiffness": 40.0, "free_position": 0.020},
+                               {"type": "constant", "force": -0.1}]}, 0.0, 0.0, 0.0, (0.006, 0.012)),
+], ids=["force-control", "LBS", "LBS-2730V", "NBS", "dead-weight", "table-dome", "sum"])
+def test_biased_equilibrium_is_where_the_driven_force_curve_meets_the_bias(bias, external, voltage, start,
+                                                                          bracket):
+    """F(w, V) = B(w) + f: the biased solve against Brent's method on driven solves, 1e-6 in w."""
+    twin = biased_twin(bias)
+    rest_state(twin, start=start, force=external)
+    res = twin.solve(voltage=[voltage], check_stability=True)
+    law = bias_from_entry(bias)
+    expected = DrivenCurve(voltage).equilibrium(law, external, *bracket)
+    assert res.position[0] == pytest.approx(expected, rel=1e-6)
+    assert res.force[0] == pytest.approx(res.bias_force[0] + external, abs=1e-9)
+    assert res.bias_force[0] == pytest.approx(law.force(res.position[0]), abs=1e-12)
+    assert res.stable
+
+
+def test_stability_flag_is_the_sign_of_the_net_stiffness_from_driven_solves():
+    """``stable`` equals sign(dF/dw - dB/dw), dF/dw from central differences of driven solves.
+
+    The bistable dome: its 0 V equilibrium near 5 mm is stable, and so is the lower branch
+    at 2000 V; the middle equilibrium at 2000 V (the unit released exactly there) is not."""
+    law = bias_from_entry(DOME)
+    twin = biased_twin(DOME)
+    states = [(0.0, rest_state(twin, start=0.005)),
+              (2000.0, twin.solve(voltage=[2000.0], check_stability=True))]
+    middle = DrivenCurve(2000.0).equilibrium(law, 0.0, 0.0061, 0.0065)
+    released = biased_twin(DOME)
+    released.solve([middle], [2000.0], ["driven"])
+    states.append((2000.0, released.solve(modes=["biased"], check_stability=True)))
+    assert states[2][1].position[0] == pytest.approx(middle, rel=1e-6)
+    net = []
+    for voltage, res in states:
+        w = res.position[0]
+        net.append(DrivenCurve(voltage).stiffness(w) - law.slope(w))
+        assert abs(net[-1]) > 5.0  # N/m: the sign is not in doubt
+        assert res.stable == (net[-1] > 0)
+    assert states[0][1].stable and not states[2][1].stable
+
+
+def test_snap_through_is_reported_and_lands_on_the_stable_upper_branch():
+    """0 -> 2730 V on the dome: the lower branch ends at a limit point; the twin reports the snap
+    (from where to where, at which voltage) and lands where Brent's method on driven solves puts
+    the upper equilibrium at that voltage; nothing lies in between; the landed state is stable."""
+    law = bias_from_entry(DOME)
+    twin = biased_twin(DOME)
+    rest_state(twin, start=0.005)
+    res = twin.solve(voltage=[2730.0], check_stability=True)
+    assert len(res.snaps) == 1 and res.snapped.tolist() == [True]
+    assert "snapped through from" in res.events[0]
+    snap = res.snaps[0]
+    v_snap = 2730.0 * snap.load_fraction
+    curve = DrivenCurve(v_snap)
+    assert 0.0055 < snap.start < 0.0065 < 0.009 < snap.end
+    assert snap.end == pytest.approx(curve.equilibrium(law, 0.0, 0.009, 0.0115), rel=1e-6)
+    gap = [curve.force(w) - law.force(w) for w in np.linspace(snap.start, snap.end, 40)[1:-1]]
+    assert max(gap) < 0  # no equilibrium left between: the snap was forced
+    assert curve.stiffness(snap.end) - law.slope(snap.end) > 5.0
+    assert res.stable
+    assert res.position[0] == pytest.approx(DrivenCurve(2730.0).equilibrium(law, 0.0, 0.0095, 0.0115), rel=1e-6)
+    back = twin.solve(voltage=[0.0], check_stability=True)  # bistable: it stays up
+    assert not back.snaps and back.stable and back.position[0] > 0.009
+
+
+def test_an_indenter_pulled_up_by_raised_neighbours_lifts_off_instead_of_pulling():
+    """Unit 2 held at 0 while its neighbours rise to 8 mm: bonded it would pull the membrane down
+    (F2 < 0); with contact it lifts off, reports 0 N and the membrane there is exactly the free
+    solution; when the neighbours come back, contact resumes."""
+    neighbours_up = [0.008, 0.0, 0.008]
+    bonded = ArrayTwin(ArrayConfig(**COARSE)).solve(neighbours_up, 0.0, ["driven"] * 3)
+    free = ArrayTwin(ArrayConfig(**COARSE)).solve(neighbours_up, 0.0, ["driven", "free", "driven"])
+    twin = ArrayTwin(ArrayConfig(**COARSE, contact=[False, True, False]))
+    res = twin.solve(neighbours_up, 0.0, ["driven"] * 3)
+    assert bonded.force[1] < -0.03
+    assert res.lifted_off.tolist() == [False, True, False] and res.force[1] == 0.0
+    assert res.position[1] == 0.0 < free.centre_deflection[1]
+    assert res.centre_deflection[1] == pytest.approx(free.centre_deflection[1], rel=1e-6)
+    assert res.force[0] == pytest.approx(free.force[0], rel=1e-6)
+    back = twin.solve([0.0, 0.0, 0.0])
+    assert not back.lifted_off.any() and np.abs(back.force).max() < 1e-9
+
+
+def test_a_biased_indenter_lifts_off_and_rests_on_its_spring():
+    """Unit 2 on a spring free at 1 mm; its neighbours rise to 8 mm and pull the membrane above
+    1 mm: the spring would have to pull, so the indenter lets go and rests at its free position."""
+    cfg = ArrayConfig(**COARSE, contact=[False, True, False], unit_modes=["driven", "biased", "driven"],
+                      bias=[{"type": "linear", "stiffness": 40.0, "free_position": 0.001}])
+    twin = ArrayTwin(cfg)
+    flat = twin.solve([0.0, 0.0, 0.0], 0.0)
+    assert 0 < flat.position[1] < 0.001 and flat.force[1] > 0 and not flat.lifted_off.any()
+    up = twin.solve([0.008, 0.0, 0.008], 0.0)
+    assert up.lifted_off[1] and up.force[1] == 0.0 and up.bias_force[1] == pytest.approx(0.0, abs=1e-12)
+    assert up.position[1] == pytest.approx(0.001, rel=1e-9)
+    assert up.centre_deflection[1] > 0.0012
+    down = twin.solve([0.0, 0.0, 0.0], 0.0)
+    assert not down.lifted_off.any() and down.position[1] == pytest.approx(flat.position[1], rel=1e-6)
+
+
+LBS = {"type": "linear", "stiffness": 40.0, "free_position": 0.020}
+MASS = 0.005  # kg: an indenter and its spring
+
+
+def oscillate(damping, periods, amplitude=1e-4):
+    """The circular unit on the LBS with 5 g, at rest at 0 V, hit by a force step that moves its
+    equilibrium by ``amplitude``; dt = T / 50 from the stiffness dF/dw - dB/dw of driven solves."""
+    law = bias_from_entry(LBS)
+    twin = biased_twin(LBS, mass=[MASS], damping=[damping])
+    rest = rest_state(twin)
+    stiffness = DrivenCurve(0.0).stiffness(rest.position[0] + amplitude) - law.slope(rest.position[0] + amplitude)
+    period = 2 * math.pi * math.sqrt(MASS / stiffness)
+    dt = period / 50
+    force = stiffness * amplitude
+    runs = [rest] + [twin.step(dt, voltage=[0.0], force=[force]) for _ in range(int(periods * 50))]
+    t = dt * np.arange(len(runs))
+    return law, force, stiffness, period, t, runs
+
+
+def test_undamped_oscillation_has_the_analytic_period_and_conserves_energy():
+    """Small oscillation (0.1 mm) about the equilibrium: the period equals 2 pi sqrt(m / (dF/dw -
+    dB/dw)) within 0.5% at dt = T / 50 (Newmark's period error is (omega dt)^2 / 12 = 0.13%), and
+    membrane + bias + kinetic energy stays constant to 1e-4 of the oscillation's energy over 10 periods
+    (from the end of the first step: a command changes linearly over the step it arrives in)."""
+    law, force, stiffness, period, t, runs = oscillate(0.0, 10)
+    w = np.array([r.position[0] for r in runs])
+    v = np.array([r.velocity[0] for r in runs])
+    u = w - 0.5 * (w.max() + w.min())
+    up = np.flatnonzero((u[:-1] < 0) & (u[1:] >= 0))
+    crossings = t[up] - u[up] * (t[up + 1] - t[up]) / (u[up + 1] - u[up])
+    measured = np.diff(crossings).mean()
+    assert len(crossings) >= 9
+    assert measured == pytest.approx(period, rel=5e-3)
+    energy = np.array([r.energy - law.work(r.position[0]) - force * r.position[0] + 0.5 * MASS * r.velocity[0] ** 2
+                       for r in runs])
+    oscillation = 0.5 * MASS * np.abs(v).max() ** 2
+    assert oscillation == pytest.approx(0.5 * stiffness * 1e-4**2, rel=0.02)
+    assert np.abs(energy[1:] - energy[1]).max() < 1e-4 * oscillation
+
+
+def test_damped_oscillation_decays_at_c_over_2m():
+    """With c = 0.05 N s/m the oscillation decays as exp(-c t / (2 m)): a least-squares fit of
+    A exp(-lambda t) cos(omega_d t + phi) + w_inf over 5 periods gives lambda = c / (2 m) within 1%."""
+    from scipy.optimize import curve_fit
+
+    damping = 0.05
+    _, _, stiffness, period, t, runs = oscillate(damping, 5)
+    w = np.array([r.position[0] for r in runs])
+    rate = damping / (2 * MASS)
+    omega = math.sqrt(stiffness / MASS - rate**2)
+
+    def model(time, amplitude, decay, frequency, phase, offset):
+        return amplitude * np.exp(-decay * time) * np.cos(frequency * time + phase) + offset
+
+    guess = (w[0] - w[-1], rate, omega, 0.0, w[-1])
+    (_, decay, frequency, _, _), _ = curve_fit(model, t, w, p0=guess)
+    assert decay == pytest.approx(rate, rel=1e-2)
+    assert frequency == pytest.approx(omega, rel=5e-3)
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"unit_modes": ["biased", "loose", "free"]}, r"^unit_modes\[1\]: must be one of"),
+    ({"unit_modes": ["biased", "free"]}, r"^unit_modes: needs 1 entry \(for every unit\) or 3"),
+    ({"bias": [{"type": "spring"}]}, r"^bias\[0\]: unknown bias type 'spring'"),
+    ({"bias": [{"type": "linear", "stiffness": 40.0, "free_positon": 0.02}]},
+     r"^bias\[0\]: unknown field\(s\) \['free_positon'\] for a linear bias"),
+    ({"bias": [{"type": "constant"}]}, r"^bias\[0\]: a constant bias needs \['force'\]"),
+    ({"bias": [None, {"type": "table", "position": [0.0, 0.01, 0.005], "force": [0, 1, 2]}, None]},
+     r"^bias\[1\]: position: must be strictly increasing"),
+    ({"bias": [{"type": "sum", "terms": [{"type": "linear", "stiffness": "stiff", "free_position": 0.0}]}]},
+     r"^bias\[0\]: terms\[0\]: stiffness: expected a finite number"),
+    ({"mass": [0.005, -0.001, 0.0]}, r"^mass\[1\]: must be a finite number >= 0"),
+    ({"damping": float("nan")}, r"^damping\[0\]: must be a finite number >= 0"),
+    ({"contact": ["yes"]}, r"^contact\[0\]: expected true or false"),
+])
+def test_bad_actuator_config_names_the_key(changes, message):
+    from dea_array_twin import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        ArrayConfig.from_dict(changes)
+
+
+def test_actuator_config_from_yaml_values_one_entry_for_all_and_back():
+    cfg = ArrayConfig.from_dict({"unit_modes": ["biased"], "mass": 0.004, "contact": True,
+                                 "bias": [{"type": "linear", "stiffness": -30.0, "free_position": 0.001}]})
+    assert cfg.modes == ("biased",) * 3 and cfg.per_unit("mass") == (0.004,) * 3
+    assert cfg.per_unit("bias")[2].force(0.002) == pytest.approx(0.03)
+    assert ArrayConfig.from_dict(cfg.to_dict()) == cfg
+    assert ArrayConfig().modes == ("driven",) * 3
+
+
+def test_table_bias_is_monotone_cubic_and_refuses_to_extrapolate():
+    from dea_array_twin.model.bias import BiasRangeError
+
+    law = bias_from_entry({"type": "table", "position": [0.0, 0.002, 0.004, 0.010], "force": [0.0, 0.3, 0.31, 0.32]})
+    w = np.linspace(0.0, 0.010, 201)
+    b = np.array([law.force(v) for v in w])
+    assert np.all(np.diff(b) >= 0) and b.max() <= 0.32  # PCHIP: no overshoot of monotone data
+    assert law.force(0.002) == 0.3 and law.work(0.010) == pytest.approx(np.trapezoid(b, w), rel=1e-4)
+    with pytest.raises(BiasRangeError, match="outside the bias table"):
+        law.force(0.0101)
+
+
+def test_an_equilibrium_beyond_the_bias_table_is_an_error_not_an_extrapolation():
+    from dea_array_twin import ConvergenceError
+
+    twin = biased_twin({"type": "table", "position": [0.0, 0.004], "force": [0.5, 0.5]}, NewtonSettings())
+    with pytest.raises(ConvergenceError, match=r"unit 1: position 0\.004\d* m is outside the bias table \[0, 0\.004\]"):
+        twin.solve(voltage=[0.0])
+    assert twin.last is None
