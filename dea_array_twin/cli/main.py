@@ -1,5 +1,5 @@
-"""Command line: ``dea-twin curve``, ``solve``, ``run``, ``demo``, ``replay``, ``plot``, ``study``, ``calibrate``,
-``rom``.
+"""Command line: ``dea-twin curve``, ``solve``, ``stroke``, ``simulate``, ``run``, ``demo``, ``replay``, ``plot``,
+``study``, ``calibrate``, ``rom``.
 
 Thin layer over :class:`~dea_array_twin.model.twin.ArrayTwin`: parses arguments, runs the solves, prints
 a labelled table (mm, N, pF) or JSON in SI units.  Exit codes: 0 ok, 1 the solver
@@ -17,7 +17,7 @@ import numpy as np
 
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
-from ..model.membrane import DRIVEN, FREE
+from ..model.membrane import FREE
 from ..model.solver import ConvergenceError
 from ..model.twin import ArrayTwin, TwinResult
 from .argtypes import float_list, word_list
@@ -63,7 +63,9 @@ def build_parser() -> argparse.ArgumentParser:
     solve.add_argument("--displacement", type=float_list(), help="per-unit displacement [m], comma separated")
     solve.add_argument("--voltage", type=float_list(example="0,2730,0"), help="per-unit voltage [V], comma separated")
     solve.add_argument("--modes", type=word_list,
-                       help="per-unit mode, 'driven' or 'free', comma separated (default: all driven)")
+                       help="per-unit mode, 'driven', 'free' or 'biased', comma separated (default: the config's "
+                            "unit_modes, all driven)")
+    solve.add_argument("--force", type=float_list(), help="per-unit external force on biased indenters [N]")
     solve.add_argument("--json", action="store_true", help="print one JSON object (SI units)")
     run = sub.add_parser("run", help="start the twin ROS 2 node (like ros2 run dea_array_twin twin_node)")
     run.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
@@ -71,8 +73,13 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the twin node plus the example wave controller, printing what they do")
     demo.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
     demo.add_argument("--duration", type=float, default=20.0, help="seconds to run (default 20; 0 = until Ctrl-C)")
-    from . import calibrate, plot, replay, rom, study
+    from . import actuator, calibrate, plot, replay, rom, study
 
+    actuator.add_arguments(
+        sub.add_parser("stroke", help="biased units: quasi-static equilibrium at each voltage level in turn "
+                                      "(stroke, force, capacitance, stability, snap-through)"),
+        sub.add_parser("simulate", help="biased units: time response to voltage (and force) schedules, "
+                                        "as JSON or CSV + PNG"))
     study.add_arguments(sub.add_parser(
         "study", help="the paper's studies: coupled curves, coupling indices (eqs. 13-16) and the five "
                       "parameter sweeps of section 6, as CSV + PNG, in parallel locally or on Dask"))
@@ -136,18 +143,20 @@ def _print_curve(curve: dict) -> None:
 def run_solve(args: argparse.Namespace, twin: ArrayTwin) -> TwinResult:
     """One equilibrium for the given displacement, voltage and modes."""
     n = twin.n_units
-    modes = args.modes or [DRIVEN] * n
     res = twin.solve(args.displacement if args.displacement is not None else np.zeros(n),
-                     args.voltage if args.voltage is not None else np.zeros(n), modes)
+                     args.voltage if args.voltage is not None else np.zeros(n), args.modes,
+                     force=args.force)
     _report_warnings(res, "the requested state")
     return res
 
 
 def _solve_dict(res: TwinResult) -> dict:
-    keys = ("displacement", "voltage", "force", "capacitance", "delta_capacitance", "centre_deflection", "peak_field")
+    keys = ("displacement", "voltage", "force", "capacitance", "delta_capacitance", "centre_deflection", "peak_field",
+            "bias_force", "external_force", "lifted_off")
     out = {k: np.asarray(getattr(res, k)).tolist() for k in keys}
     out.update(modes=list(res.modes), stable=res.stable, wrinkled=res.wrinkled, field_exceeded=res.field_exceeded,
-               min_principal_stress=res.min_principal_stress, iterations=res.iterations, warnings=res.warnings)
+               min_principal_stress=res.min_principal_stress, iterations=res.iterations, warnings=res.warnings,
+               events=res.events)
     return out
 
 
@@ -181,6 +190,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from ..bag.recover import main as recover_main
 
         return recover_main([args.src, args.dst])
+    if args.command in ("stroke", "simulate"):
+        from . import actuator
+
+        return actuator.run_stroke(args) if args.command == "stroke" else actuator.run_simulate(args)
     if args.command in ("replay", "plot", "study", "calibrate", "rom"):
         from . import calibrate, plot, replay, rom, study
 

@@ -6,6 +6,8 @@
                at 0 V and at the experiments' HV (2730 V / 2300 V)
 ``sweep NAME`` one of section 6's studies: spacing, edge_distance, prestretch, scale,
                shape, or ``all`` of them plus the coupling of the base configuration
+``stroke``     figures 5-6: the measured unit's stroke on an LBS and on an NBS matched
+               to its nominal curves, neighbours free and pre-deflected
 
 Tasks run here, on ``--workers N`` local processes or on a Dask cluster
 (``--scheduler ADDRESS``); the numbers are the same whichever ran them.  Exit codes:
@@ -26,6 +28,7 @@ from typing import Sequence
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
 from ..parallel import ExecutorError, run_tasks
+from ..studies import stroke as stroke_study
 from ..studies import tasks as study
 from ..studies.tasks import CurveFailure, CurveResult, CurveTask
 from .argtypes import float_list
@@ -96,6 +99,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sweep.add_argument("config", nargs="?", help=config_help)
     sweep.add_argument("--values", type=float_list(),
                        help="parameter values in SI (m, -, downscale factor; default: the paper's range)")
+    stroke = kinds.add_parser("stroke", parents=[common],
+                              help="figures 5-6: stroke on an LBS and an NBS designed on the nominal curves, "
+                                   "neighbours free and pre-deflected")
+    stroke.add_argument("config", nargs="?", help=config_help)
+    stroke.add_argument("--voltage", type=float,
+                        help="HV on the measured unit [V] (default: the experiments' HV at the config's "
+                             "pre-stretch, 2730 V at lp = 1.10)")
+    stroke.add_argument("--operating-point", type=float,
+                        help=f"0 V position the biases are designed for [m] (default "
+                             f"{stroke_study.OPERATING_POINT:g} D)")
+    stroke.add_argument("--rate-fraction", type=float, default=stroke_study.RATE_FRACTION,
+                        help=f"NBS rate as a fraction of the nominal HV stiffness at the operating point "
+                             f"(default {stroke_study.RATE_FRACTION:g})")
 
 
 # ----------------------------------------------------------------------- running
@@ -261,6 +277,34 @@ def _curves(base: ArrayConfig, args: argparse.Namespace, out: Path, summary: lis
     return ok
 
 
+def _stroke(base: ArrayConfig, args: argparse.Namespace, out: Path, summary: list[str]) -> bool:
+    from ..studies.plots import plot_stroke
+
+    tasks = stroke_study.stroke_curve_tasks(base, args.voltage, args.steps)
+    voltage = tasks[1].voltage
+    results = _run(tasks, args, "stroke curves")
+    _write_csv(out / "stroke_curves.csv", *curve_rows(results))
+    if not all(isinstance(r, CurveResult) for r in results):
+        summary += ["## stroke", "", "A curve failed to solve: see stroke_curves.csv.", ""]
+        return False
+    if not 0.0 < args.rate_fraction < 1.0:
+        raise ConfigError(f"--rate-fraction must be in (0, 1) for a stable NBS, got {args.rate_fraction}")
+    result = stroke_study.stroke_study(
+        base, results, args.operating_point, args.rate_fraction,
+        on_row=lambda r: print(f"dea-twin study: {r.bias}, neighbours {r.neighbours}: stroke "
+                               f"{r.stroke * 1e3:.3f} mm", file=sys.stderr))
+    head = ["bias", "stiffness_N_per_m", "free_position_m", "neighbours", "position_0V_m", "position_HV_m",
+            "stroke_m", "stable", "snap"]
+    rows = [[r.bias, r.law.stiffness, r.law.free_position, r.neighbours, r.rest_position, r.position, r.stroke,
+             int(r.stable), int(r.snap)] for r in result.rows]
+    _write_csv(out / "stroke.csv", head, rows, [f"HV {voltage:g} V; operating point "
+                                                f"{result.operating_point:g} m; NBS rate fraction "
+                                                f"{args.rate_fraction:g}"])
+    plot_stroke(result, out / "stroke.png")
+    summary += stroke_study.stroke_summary(result)
+    return True
+
+
 def curves_summary(cfg: ArrayConfig, results: Sequence[CurveResult | CurveFailure],
                    cap: Sequence[CurveResult | CurveFailure], figures: tuple[int, int] | None) -> list[str]:
     """Markdown: the capacitance changes and force maxima of one pre-stretch's curves, and their flags."""
@@ -299,6 +343,9 @@ def curves_summary(cfg: ArrayConfig, results: Sequence[CurveResult | CurveFailur
 
 def _hv_text(args: argparse.Namespace) -> str:
     """Which HV (and, for the indices, which reading of "not deflected") the study applies, for the summary."""
+    if args.study == "stroke":
+        return ("HV on the measured unit = " + (f"{args.voltage:g} V" if args.voltage is not None
+                                                 else "the experiments' voltage at the pre-stretch (section 5.1)"))
     if args.study != "curves":
         return ("HV = Ec t0 / lp^2 with Ec = 80 V/um (eq. 14); neighbours not deflected = "
                 + ("free units" if args.undeflected == "free" else "indenters held at 0 mm"))
@@ -334,6 +381,8 @@ def run_from_args(args: argparse.Namespace) -> int:
                    f"(far field/electrode edges/indenter edges, before scaling); {args.steps} steps per curve.", ""]
         if args.study == "curves":
             ok = _curves(base, args, out, summary)
+        elif args.study == "stroke":
+            ok = _stroke(base, args, out, summary)
         elif args.study == "coupling":
             ok = _coupling_or_sweep("coupling", base, args, out, summary)
         else:

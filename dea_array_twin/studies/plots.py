@@ -215,3 +215,41 @@ def _save_pair(fig, axes, xlabel: str, unit: str, title: str, path: Path) -> Pat
     fig.savefig(path, dpi=110)
     return path
 
+
+
+def plot_stroke(study, path: Path) -> Path:
+    """Figures 5(b) and 6(b): the measured unit's 0 V (blue) and HV (red) force curves with the LBS
+    (solid black) and NBS (dashed black) lines, equilibria as dots; (b) neighbours pre-deflected,
+    the nominal curves dotted."""
+    fig, axes = _figure(1, 2, (12, 4.8))
+    unit = study.curves["lv"].task.swept
+    stroke_max = study.curves["lv"].displacement[-1]
+    w = np.linspace(0.0, stroke_max, 200)
+    for ax, neighbours, cases in ((axes[0, 0], "free", ("lv", "hv")), (axes[0, 1], "pre", ("lv_pre", "hv_pre"))):
+        for case, colour in zip(cases, ("tab:blue", "tab:red")):
+            res = study.curves[case]
+            label = f"{'0 V' if case.startswith('lv') else f'{study.voltage:g} V'}"
+            ax.plot(res.displacement * 1e3, res.force[:, unit], "-", color=colour, label=label)
+            if neighbours == "pre":
+                nominal = study.curves[case.removesuffix("_pre")]
+                ax.plot(nominal.displacement * 1e3, nominal.force[:, unit], ":", color=colour,
+                        label=f"{label}, nominal")
+        for name, style in (("LBS", "-"), ("NBS", "--")):
+            law = study.biases[name]
+            ax.plot(w * 1e3, [law.force(v) for v in w], style, color="k", lw=1.2, label=name)
+            row = study.row(name, neighbours)
+            for x, colour in ((row.rest_position, "tab:blue"), (row.position, "tab:red")):
+                ax.plot(x * 1e3, law.force(x), "o", color=colour, mec="k", zorder=5)
+            height = -0.045 if name == "LBS" else -0.02
+            ax.annotate("", xy=(row.position * 1e3, height), xytext=(row.rest_position * 1e3, height),
+                        arrowprops={"arrowstyle": "->", "color": "k"})
+            ax.text(row.rest_position * 1e3 - 0.2, height, f"{name} stroke {row.stroke * 1e3:.2f} mm",
+                    ha="right", va="center", fontsize=8)
+        ax.set(xlabel=f"unit {unit + 1} position w [mm]", ylabel=f"force on unit {unit + 1} [N]",
+               ylim=(-0.06, None), xlim=(0, stroke_max * 1e3))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper left")
+    axes[0, 0].set_title("(a) neighbours not deflected (figure 5b)")
+    axes[0, 1].set_title("(b) neighbours pre-deflected by 0.4 D (figure 6b)")
+    fig.savefig(path, dpi=110)
+    return path
