@@ -12,6 +12,7 @@ from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
 
 from dea_array_twin import ArrayConfig, ArrayTwin
+from dea_array_twin.ros.params import config_parameters
 from dea_array_twin.ros.testing import TwinHarness
 
 FREE_CENTRE = ["free", "driven", "free"]
@@ -188,7 +189,10 @@ def test_every_parameter_answers_get_parameters_as_ros2_param_dump_asks():
         names = _call(h, ListParameters, "dea_array_twin/list_parameters", ListParameters.Request()).result.names
         values = dict(zip(names, _get(h, names)))
     assert len(values) == len(names) > len(ArrayConfig().to_dict())
-    assert set(ArrayConfig().to_dict()) | {"update_rate", "solve_budget", "unit_modes", "record"} <= set(names)
+    flattened = set(config_parameters(ArrayConfig()))  # per-unit fields one entry per unit, bias as bias.*
+    assert flattened | {"update_rate", "solve_budget", "unit_modes", "record"} <= set(names)
+    assert values["contact"].type == ParameterType.PARAMETER_BOOL_ARRAY
+    assert values["bias.stiffness"].type == ParameterType.PARAMETER_DOUBLE_ARRAY
     for table in ("slip_displacement", "slip_factor"):
         assert values[table].type == ParameterType.PARAMETER_DOUBLE_ARRAY
         assert list(values[table].double_array_value) == []
