@@ -2,6 +2,7 @@
 
 Run:  .venv/bin/python benchmarks/bench_rom.py [--size 1x3|4x4] [--snapshots N] [--modes R]
                                                [--validation N] [--workers N] [--rom FILE] [--save FILE]
+      .venv/bin/python benchmarks/bench_rom.py --rom FILE --node SECONDS [--fe-check-rate HZ]
 
 Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 voltage]):
   - training cost: FE snapshots (wall and CPU s), basis + hyper-reduction, sizes;
@@ -12,9 +13,14 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
     errors against FE warm solves (and the FE's time per warm update), then the time per
     update of the library's ``ReducedTwin.solve`` running alone on the same paths
     (median, mean, p99, max; refreshes in the calling thread, then ``background_refresh``);
-Targets (issue 15): 1x3 <= 0.1 % force and capacitance error, <= 0.1 ms per update;
-4x4 <= 0.5 ms per update.  ``--rom FILE`` reuses a trained ROM (its stored validation
-table is printed; held-out commands are not re-solved).  Not a test: numbers for the
+``--node SECONDS``: instead, the twin node (its own process) with ``model: rom`` and the
+ROM of ``--rom`` at ``update_rate: 1000``, commands at 1 kHz (unit k at 7.5 + 5 sin(2 pi t
++ 2 pi k / n) mm, 1000 V on every unit), the FE check at ``--fe-check-rate``; reports
+the force messages per tick (every tick publishes) and the node's diagnostics.
+Targets (issue 15): 1x3 <= 0.1 % force and capacitance error, <= 0.1 ms per update,
+the node at 1 kHz holding >= 99 % of its ticks; 4x4 <= 0.5 ms per update.
+``--rom FILE`` reuses a trained ROM (its stored validation table is printed; held-out
+commands are not re-solved).  Not a test: numbers for the
 notes, with the machine's load (``uptime``) printed next to them.
 """
 
@@ -102,6 +108,42 @@ def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background
     return np.array(ms), {"evaluations": twin.evaluations - start[0], "refreshes": twin.refreshes - start[1]}
 
 
+def main_node(rom_file: str, seconds: float, check_rate: float) -> None:
+    """The node with the ROM at update_rate 1000 on a 1 Hz sine command: the share of ticks it publishes."""
+    import math
+
+    from dea_array_twin.ros.testing import TwinHarness
+
+    rate = 1000.0
+    params = {"update_rate": rate, "marker_rate": 0.0, "model": "rom", "rom_file": str(rom_file),
+              "fe_check_rate": check_rate}
+    print(f"node: model rom ({rom_file}), update_rate {rate:g} Hz, fe_check_rate {check_rate:g} Hz, commands at "
+          f"{rate:g} Hz; {seconds:g} s measured after 3 s; {load()} at start")
+    with TwinHarness(parameters=params, process=True) as h:
+        h.send_voltage([1000.0] * 3)
+        start = time.monotonic()
+        window = None
+        tick = start
+        while time.monotonic() - start < seconds + 3.0:
+            t = time.monotonic() - start
+            h.send_displacement([0.0075 + 0.005 * math.sin(2 * math.pi * (t + k / 3.0)) for k in range(3)])
+            if window is None and t >= 3.0:
+                h.clear()
+                window = time.monotonic()
+            tick += 1.0 / rate
+            time.sleep(max(0.0, tick - time.monotonic()))
+        elapsed = time.monotonic() - window
+        forces = len(h.messages("force"))
+        diags = h.messages("/diagnostics")
+    values = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
+    keys = ("updates_per_s", "skipped_ticks", "solve_time_p50_ms", "solve_time_p95_ms", "solve_time_max_ms",
+            "rom_updates", "rom_refreshes", "rom_fallbacks_envelope", "rom_fallbacks_indicator", "rom_resyncs",
+            "fe_checks", "fe_check_ms", "rom_fe_force_difference_max", "rom_fe_capacitance_difference_max")
+    print(f"  force messages {forces} in {elapsed:.2f} s = {forces / elapsed:.1f} /s: "
+          f"{100 * forces / (rate * elapsed):.1f} % of the ticks (goal >= 99 %); {load()} at the end")
+    print("  last diagnostics: " + ", ".join(f"{k} {values.get(k)}" for k in keys))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", default="1x3", help="rows x cols (default 1x3, the paper's array)")
@@ -115,7 +157,14 @@ def main() -> None:
     parser.add_argument("--length", type=int, default=400, help="updates per trajectory (default 400)")
     parser.add_argument("--rom", help="use this trained ROM file instead of training")
     parser.add_argument("--save", help="write the trained ROM here")
+    parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
+    parser.add_argument("--fe-check-rate", type=float, default=1.0, help="--node: FE checks per second (default 1)")
     args = parser.parse_args()
+    if args.node:
+        if not args.rom:
+            parser.error("--node needs --rom")
+        main_node(args.rom, args.node, args.fe_check_rate)
+        return
     rows, cols = (int(n) for n in args.size.split("x"))
     cfg = grid(rows, cols)
     print(f"dea_array_twin ROM benchmark: {args.size}, default mesh; {load()} on {os.cpu_count()} cores")

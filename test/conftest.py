@@ -28,6 +28,29 @@ def make_twin():
     return make
 
 
+@pytest.fixture(scope="session")
+def coarse_rom(tmp_path_factory):
+    """A small reduced model of the coarse 1-by-3 array, trained once per session (about 26 FE snapshots).
+
+    Every unit driven, d in [0, 8] mm, units 2 and 3 up to 2500 V and unit 1 never
+    energised (so "voltage on an untrained unit" is outside its envelope); 14 modes,
+    tolerance 2e-3.  Returns ``(config, rom, rom_file, config_yaml)``.
+    """
+    import numpy as np
+
+    from dea_array_twin.model.reduced import Envelope
+    from dea_array_twin.rom.train import train
+    from dea_array_twin.romfile import save_rom
+
+    cfg = ArrayConfig(**COARSE)
+    envelope = Envelope(("driven",) * 3, np.zeros(3), np.full(3, 0.008), np.zeros(3), np.array([0.0, 2500.0, 2500.0]))
+    rom = train(cfg, envelope, n_snapshots=26, n_modes=14, tolerance=2e-3, n_validation=6, seed=3).rom
+    folder = tmp_path_factory.mktemp("rom")
+    config_yaml = folder / "coarse.yaml"
+    config_yaml.write_text(yaml.safe_dump(COARSE))
+    return cfg, rom, save_rom(rom, folder / "coarse"), config_yaml
+
+
 @pytest.fixture
 def coarse_yaml(tmp_path):
     """A config YAML of the default array on the coarse mesh."""

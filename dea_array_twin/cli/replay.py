@@ -29,6 +29,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fit-lag", type=float, default=None, metavar="SECONDS",
                         help="largest latency of recorded outputs behind their commands (default: three update "
                              "periods of the recording node, 0 if unknown)")
+    parser.add_argument("--rom", metavar="ROM.npz",
+                        help="replay with this reduced model (dea-twin rom train) instead of the FE")
+    parser.add_argument("--compare", action="store_true",
+                        help="with --rom: also replay the FE and print the reduced model's differences from it")
     parser.add_argument("--realtime", action="store_true",
                         help="republish the recorded commands on ROS 2 with their timing instead of simulating")
     parser.add_argument("--rate", type=float, default=None, help="--realtime speed factor (default 1)")
@@ -41,15 +45,17 @@ def run_from_args(args: argparse.Namespace) -> int:
     try:
         topic_map = parse_topic_map(args.topic_map)
         if args.realtime:
-            unused = [opt for opt, value in (("--config", args.config), ("--out", args.out), ("--modes", args.modes))
+            unused = [opt for opt, value in (("--config", args.config), ("--out", args.out), ("--modes", args.modes),
+                                             ("--rom", args.rom), ("--compare", args.compare or None))
                       if value is not None]
             if unused:
                 raise BagError(f"{', '.join(unused)} do(es) not apply to --realtime (it republishes the commands)")
             return realtime_replay(Bag(args.bag), topic_map, 1.0 if args.rate is None else args.rate, args.wait)
         if args.rate is not None:
             raise BagError("--rate needs --realtime")
-        return replay_offline(Bag(args.bag), topic_map, args.config, args.modes, args.out, args.fit_lag)
-    except (BagError, ConfigError) as exc:
+        return replay_offline(Bag(args.bag), topic_map, args.config, args.modes, args.out, args.fit_lag,
+                              args.rom, args.compare)
+    except (BagError, ConfigError, ValueError) as exc:
         print(f"dea-twin replay: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # includes RecordingError (cannot write the outputs)

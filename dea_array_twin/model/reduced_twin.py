@@ -49,7 +49,7 @@ import time
 from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, fields
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -57,7 +57,7 @@ from .config import ArrayConfig
 from .reduced import ReducedModel, RomMismatchError, check_config
 from .rom_build import held_elements
 from .rom_kernels import classify, evaluate, hessian, point_maps, update
-from .solver import ConvergenceError, NewtonSettings
+from .solver import ConvergenceError, NewtonSettings, SolveCancelled
 from .twin import ArrayTwin, TwinResult
 
 
@@ -160,8 +160,9 @@ class ReducedTwin:
     ----------
     fallbacks : Counter
         Updates the FE answered, by reason: ``"envelope"``, ``"indicator"``, ``"newton"``.
-    updates, evaluations, refreshes : int
-        Reduced updates answered, gradient evaluations and Hessian refreshes so far.
+    updates, evaluations, refreshes, resyncs : int
+        Reduced updates answered, gradient evaluations, Hessian refreshes and restarts
+        from an FE state (:meth:`request_resync`) so far.
     """
 
     def __init__(self, config: ArrayConfig | None, rom: ReducedModel, settings: NewtonSettings | None = None,
@@ -216,7 +217,8 @@ class ReducedTwin:
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="rom-tangent") if background_refresh else None
         self._refresh_step = refresh_distance * self._range
         self.fallbacks: Counter = Counter()
-        self.updates = self.evaluations = self.refreshes = 0
+        self.updates = self.evaluations = self.refreshes = self.resyncs = 0
+        self._resync: TwinResult | None = None
         self.reset()
 
 
@@ -305,7 +307,8 @@ class ReducedTwin:
         if self._pool is not None:
             self._pool.shutdown(wait=True)
 
-    def _settle(self, z: np.ndarray, maxwell: np.ndarray, from_state: bool) -> tuple[int, int]:
+    def _settle(self, z: np.ndarray, maxwell: np.ndarray, from_state: bool,
+                cancel: Callable[[], bool] | None = None) -> tuple[int, int]:
         """Newton on ``q`` to convergence at fixed ``(d, m)`` (in place); returns (evaluations, refreshes).
 
         Starts from ``z``'s coordinates if ``from_state`` (a projected FE state, or the
@@ -321,6 +324,8 @@ class ReducedTwin:
         tol = 1e-9 * self.model.length_scale
         out = self._buffers
         for iteration in range(1, 31):
+            if cancel is not None and cancel():
+                raise SolveCancelled("reduced solve cancelled")
             tangent = self._refresh(z, maxwell)
             self._evaluate(z, maxwell, out)
             dq = -tangent.hqq_inv @ out[0][q]
@@ -331,17 +336,45 @@ class ReducedTwin:
                 return iteration, iteration
         raise ConvergenceError("reduced Newton did not converge")
 
+    def _project(self, x: np.ndarray, d: np.ndarray, v: np.ndarray) -> None:
+        """Make positions ``x`` [m] at command ``(d, v)`` the start of the next (cold) reduced solve."""
+        z = self._z.copy()
+        driven = d[self._driven]
+        z[1:1 + self._nd] = driven
+        z[1 + self._nd:] = self.rom.basis.T @ (x - self.rom.reference - self.rom.lift @ driven)
+        self._z, self._maxwell = z, self._maxwell_factor * v * v
+        self._projected = self._cold = True
+
+    def request_resync(self, result: TwinResult) -> None:
+        """Restart the reduced state from an FE result at the next :meth:`solve` (callable from another thread).
+
+        The FE check of a node calls this when the reduced model has drifted from the FE:
+        the next solve runs Newton from ``result``'s state projected on the basis.  A
+        result in other unit modes or outside the envelope is ignored.
+        """
+        self._resync = result
+
+    def _apply_resync(self) -> None:
+        result, self._resync = self._resync, None
+        d, v = np.asarray(result.displacement, float), np.asarray(result.voltage, float)
+        if tuple(result.modes) == self.modes and self.rom.envelope.violation(d, v, result.modes) is None:
+            self._project(np.asarray(result.positions).ravel(), d, v)
+            self.resyncs += 1
+
     # ------------------------------------------------------------------ solve
     def solve(self, displacement: Sequence[float] | float | None = None,
               voltage: Sequence[float] | float | None = None,
-              modes: Sequence[str] | None = None, check_stability: bool | None = None) -> TwinResult:
+              modes: Sequence[str] | None = None, check_stability: bool | None = None,
+              cancel: Callable[[], bool] | None = None) -> TwinResult:
         """Move to a new command and return the state there (see :meth:`.ArrayTwin.solve`).
 
         Answered by the reduced model inside the envelope, by the FE otherwise
         (``result.fallback`` says why).  ``modes`` defaults to the previous ones (the
         trained modes after :meth:`reset`).  ``check_stability`` (default False)
         refreshes the reduced Hessian at the new state and reports whether it is
-        positive definite.
+        positive definite.  ``cancel`` is asked between reduced Newton iterations (a
+        jump or a cold start) and by an FE fallback; when it returns True the solve
+        raises :class:`SolveCancelled` and the twin keeps its previous state.
 
         Raises
         ------
@@ -350,8 +383,12 @@ class ReducedTwin:
             or with invalid modes.
         ConvergenceError
             When the FE fallback finds no equilibrium.
+        SolveCancelled
+            When ``cancel`` asked for it.
         """
         tic = time.perf_counter()
+        if self._resync is not None:
+            self._apply_resync()
         d1 = self._command("displacement", displacement, self._displacement)
         v1 = self._command("voltage", voltage, self._voltage)
         modes = self._modes if modes is None else tuple(modes)
@@ -363,27 +400,30 @@ class ReducedTwin:
         if code == 3 or modes != self.modes:
             modes = self.model.check_modes(modes)
             reason = self.rom.envelope.violation(d1, v1, modes) or "outside the envelope"
-            return self._fallback("envelope", reason, d1, v1, modes, check_stability, tic)
+            return self._fallback("envelope", reason, d1, v1, modes, check_stability, cancel, tic)
         try:
-            result = self._reduced(d1, v1, far, bool(check_stability), tic)
+            result = self._reduced(d1, v1, far, bool(check_stability), cancel, tic)
+        except SolveCancelled:
+            raise
         except ConvergenceError as exc:
-            return self._fallback("newton", str(exc), d1, v1, modes, check_stability, tic)
+            return self._fallback("newton", str(exc), d1, v1, modes, check_stability, cancel, tic)
         if result.error_indicator > self.tolerance:
             return self._fallback("indicator", f"error indicator {result.error_indicator:.3g} above tolerance "
-                                  f"{self.tolerance:.3g}", d1, v1, modes, check_stability, tic,
+                                  f"{self.tolerance:.3g}", d1, v1, modes, check_stability, cancel, tic,
                                   indicator=result.error_indicator)
         self.updates += 1
         self.last = result
         return result
 
-    def _reduced(self, d1: np.ndarray, v1: np.ndarray, far: bool, check: bool, tic: float) -> ReducedResult:
+    def _reduced(self, d1: np.ndarray, v1: np.ndarray, far: bool, check: bool, cancel: Callable[[], bool] | None,
+                 tic: float) -> ReducedResult:
         z = self._z.copy()
         m0 = self._maxwell
         evals = refreshes = 0
         if self._cold:
             m0 = self._maxwell_factor * v1 * v1
             z[1:1 + self._nd] = d1[self._driven]
-            evals, refreshes = self._settle(z, m0, self._projected)
+            evals, refreshes = self._settle(z, m0, self._projected, cancel)
             self._cold = self._projected = False
         else:
             refreshes = self._collect_refresh()
@@ -396,7 +436,7 @@ class ReducedTwin:
         evals += int(info[4])
         self._refresh_next = info[5] > 0.0
         if info[6] > self.second_step:  # a jump: the last correction still moved an output, so converge
-            more, refreshed = self._settle(z, m1, from_state=True)
+            more, refreshed = self._settle(z, m1, True, cancel)
             update(self._points, z, m1, d1, v1, self._layout, self._tangent.arrays, self._cap_factor,
                    self.second_step, self._buffers, m1, result, info)
             self.evaluations += int(info[4])
@@ -416,19 +456,16 @@ class ReducedTwin:
             error_indicator=float(info[2]), recover=functools.partial(_recover, self._reference, self._vectors, z[1:]))
 
     def _fallback(self, kind: str, reason: str, d1: np.ndarray, v1: np.ndarray, modes: tuple,
-                  check_stability: bool | None, tic: float, indicator: float = math.nan) -> ReducedResult:
+                  check_stability: bool | None, cancel: Callable[[], bool] | None, tic: float,
+                  indicator: float = math.nan) -> ReducedResult:
         """Answer with the FE; resynchronise the reduced state from it when the command is in the envelope."""
+        res = self.fe.solve(d1, v1, modes, check_stability, cancel=cancel)
         self.fallbacks[kind] += 1
-        res = self.fe.solve(d1, v1, modes, check_stability)
         self._modes, self._displacement, self._voltage = res.modes, res.displacement.copy(), v1
         if kind != "envelope":
-            x = res.positions.ravel()
-            z = self._z.copy()
-            d = d1[self._driven]
-            z[1:1 + self._nd] = d
-            z[1 + self._nd:] = self.rom.basis.T @ (x - self.rom.reference - self.rom.lift @ d)
-            self._z, self._maxwell = z, self._maxwell_factor * v1 * v1
-        self._projected = kind != "envelope"
+            self._project(res.positions.ravel(), d1, v1)
+        else:
+            self._projected = False
         self._cold = True
         values = {f.name: getattr(res, f.name) for f in fields(TwinResult)}
         values["solve_time"] = time.perf_counter() - tic

@@ -49,6 +49,13 @@ before it; the zero command before the first one) and the paper's FIT (eq. 12, :
 is printed per unit and channel.  A recording of the live node at ``update_rate`` > 0
 lags its commands by up to one tick, which costs a little FIT on fast command changes.
 
+With ``--rom ROM.npz`` the replay runs the reduced twin
+(:class:`~dea_array_twin.model.reduced_twin.ReducedTwin`, its FE answering outside
+the envelope; the count of such fallbacks is printed); ``--rom ROM.npz --compare``
+also replays the FE on the same commands and prints the reduced model's largest force
+difference (over each unit's largest FE |F|) and capacitance difference (over C) and the
+FIT of its outputs against the FE's (:func:`compare_models`).
+
 A file without a summary (the recorder was killed) is refused (see :mod:`~dea_array_twin.bag.reader`).
 
 Exit codes: 0 ok, 1 some command had no equilibrium (the rest is replayed), 2 bad input
@@ -81,8 +88,10 @@ from ..bag.topics import (
 from ..bag.twin_config import REPLAY_METADATA, metadata_from_config, resolve_config
 from ..bag.writer import CONFIG_RECORD
 from ..model.metrics import fit
+from ..model.reduced_twin import ReducedTwin
 from ..model.solver import ConvergenceError
 from ..model.twin import ArrayTwin, command_error
+from ..romfile import load_rom
 
 __all__ = ["ReplayRun", "compare_outputs", "replay_commands", "replay_offline"]
 
@@ -256,6 +265,38 @@ def compare_outputs(run: ReplayRun, recorded: dict[str, tuple[np.ndarray, np.nda
 # ------------------------------------------------------------------- outputs
 
 
+def compare_models(rom: ReplayRun, fe: ReplayRun) -> dict[str, np.ndarray]:
+    """The reduced replay against the FE replay of the same commands, per unit.
+
+    Returns ``force_difference`` (largest |F_rom - F_fe| over the unit's largest FE |F|),
+    ``capacitance_difference`` (largest |C_rom - C_fe| / C_fe) and the FIT [%] (eq. 12)
+    of the reduced force and capacitance against the FE's.  Rows are paired by command
+    (both replays solve the same accepted commands); a command one of them could not
+    solve is left out.
+    """
+    common = np.intersect1d(rom.times_ns, fe.times_ns)
+    a = np.searchsorted(rom.times_ns, common)
+    b = np.searchsorted(fe.times_ns, common)
+    f_rom, f_fe = rom.force[a], fe.force[b]
+    c_rom, c_fe = rom.capacitance[a], fe.capacitance[b]
+    scale = np.abs(f_fe).max(axis=0, initial=0.0)
+    return {"force_difference": np.abs(f_rom - f_fe).max(axis=0, initial=0.0) / np.where(scale > 0, scale, 1.0),
+            "capacitance_difference": (np.abs(c_rom - c_fe) / c_fe).max(axis=0, initial=0.0),
+            "force_fit": np.array([fit(f_fe[:, k], f_rom[:, k]) for k in range(f_fe.shape[1])]),
+            "capacitance_fit": np.array([fit(c_fe[:, k], c_rom[:, k]) for k in range(c_fe.shape[1])])}
+
+
+def _comparison_table(diff: dict[str, np.ndarray], rows: int) -> str:
+    lines = [f"reduced model against the FE on the same {rows} command(s):",
+             "  unit  force diff [%]  capacitance diff [%]  force FIT [%]  capacitance FIT [%]"]
+    for u in range(diff["force_difference"].size):
+        cells = [f"{100 * diff['force_difference'][u]:14.4f}", f"{100 * diff['capacitance_difference'][u]:20.5f}"]
+        cells += [f"{'n/a' if math.isnan(v) else f'{v:.4f}':>13}" for v in (diff["force_fit"][u],)]
+        cells += [f"{'n/a' if math.isnan(v) else f'{v:.4f}':>19}" for v in (diff["capacitance_fit"][u],)]
+        lines.append(f"  {u + 1:>4}  " + "  ".join(cells))
+    return "\n".join(lines)
+
+
 def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]]) -> None:
     """Write the replay as a ROS 2 MCAP bag (see the module docstring for the topics).
 
@@ -323,8 +364,12 @@ def _log(text: str) -> None:
 
 
 def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None, modes: Sequence[str] | None,
-                   out: str | None, fit_lag: float | None = None) -> int:
-    """``dea-twin replay BAG``: re-run the twin, write OUT.mcap and OUT.csv, print FIT; the exit code."""
+                   out: str | None, fit_lag: float | None = None, rom_path: str | None = None,
+                   compare: bool = False) -> int:
+    """``dea-twin replay BAG``: re-run the twin (the FE, or the ROM of ``rom_path``), write OUT.mcap and
+    OUT.csv, print FIT (and with ``compare`` the ROM against the FE); the exit code."""
+    if compare and rom_path is None:
+        raise BagError("--compare needs --rom (it compares the reduced model with the FE)")
     commands = command_topics(bag, topic_map)
     outputs = output_topics(bag, commands, topic_map)
     cfg, modes, notes = resolve_config(bag, config_path, modes)
@@ -335,7 +380,7 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     if any(mcap_path.resolve() == p.resolve() for p in bag.files):
         raise BagError(f"the output {mcap_path} would overwrite the input; choose another --out")
     _log("commands from " + ", ".join(f"{t} ({bag.counts.get(t, 0)} msgs)" for t in commands.values()))
-    twin = ArrayTwin(cfg)
+    twin = ArrayTwin(cfg) if rom_path is None else ReducedTwin(cfg, load_rom(rom_path, cfg))
     kind_of = {topic: kind for kind, topic in commands.items()}
     recorded: dict[str, tuple[list, list]] = {k: ([], []) for k in outputs}
     output_kind = {topic: kind for kind, topic in outputs.items()}
@@ -360,6 +405,9 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     tic = time.perf_counter()
     run = replay_commands(twin, modes, command_stream(), total=total, time_origin_ns=origin)
     elapsed = time.perf_counter() - tic
+    if rom_path is not None:
+        print(f"reduced model {rom_path}: {twin.updates} update(s) by the ROM, FE fallbacks "
+              + (", ".join(f"{k} {v}" for k, v in sorted(twin.fallbacks.items())) or "none"))
     for kind, count in run.skipped.items():
         _log(f"warning: skipped {count} invalid {kind} command(s)")
     for text, count in run.state_warnings.items():
@@ -394,4 +442,9 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
              "it (three update periods of the recording node; --fit-lag to change)")
         fits = compare_outputs(run, data, int(round(fit_lag * 1e9)))
         print(_fit_table(fits, outputs, {k: len(v[0]) for k, v in data.items()}))
+    if compare:
+        fe_run = replay_commands(ArrayTwin(cfg), modes, ((t, k, v) for t, k, v in command_stream()
+                                                         if k in ("displacement", "voltage")),
+                                 total=total, time_origin_ns=origin)
+        print(_comparison_table(compare_models(run, fe_run), min(run.n_solves, fe_run.n_solves)))
     return 1 if run.failures else 0

@@ -18,6 +18,14 @@ The executor only moves messages: callbacks check a command
 :class:`~dea_array_twin.model.twin.ArrayTwin`, solves on the latest command, gives
 each solve a time budget (``solve_budget``) and publishes when a solve finishes.  So
 commands, ``reset``, parameters, diagnostics and the recorder never wait for a solve.
+
+With ``model: rom`` the solver thread runs a
+:class:`~dea_array_twin.model.reduced_twin.ReducedTwin` from ``rom_file`` (a ROM
+trained for another config stops the start, naming the fields that differ), and
+:class:`~.fe_check.FeCheck` re-solves the latest command with the FE in a background
+thread ``fe_check_rate`` times a second: the ROM-vs-FE difference goes to
+``/diagnostics``, and a difference above the ROM's tolerance restarts the reduced
+state from the FE state.
 """
 
 from __future__ import annotations
@@ -43,7 +51,10 @@ from visualization_msgs.msg import Marker
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
 from ..model.membrane import FREE, MODES, check_modes
+from ..model.reduced_twin import ReducedTwin
 from ..model.twin import ArrayTwin, TwinResult, command_error
+from ..romfile import load_rom
+from .fe_check import FeCheck
 from .params import (
     RUNTIME_FIELDS,
     coerce_doubles,
@@ -75,7 +86,7 @@ class TwinNode(Node):
     def __init__(self, **kwargs):
         super().__init__("dea_array_twin", **kwargs)
         cfg = self._declare_config()
-        twin = ArrayTwin(cfg)
+        twin = self._make_twin(cfg)
         #: The mesh and operators (read-only; the marker and the log use them).  The twin's
         #: state belongs to the solver thread.
         self.model = twin.model
@@ -114,6 +125,16 @@ class TwinNode(Node):
         self.updater = TwinUpdater(twin, {kind: np.zeros(n) for kind in COMMAND_KINDS}, self.modes,
                                    self._publish_outputs, self._warn, self.solve_budget, stability_period,
                                    event_driven=self.update_rate == 0)
+        check_rate = declare_number(self, "fe_check_rate", 1.0,
+                                    "model rom: FE re-solves of the latest command per second, in a background "
+                                    "thread (difference in /diagnostics, resync above the ROM's tolerance); 0 = off")
+        #: The reduced twin (model: rom) and its FE check, else None.
+        self.rom_twin = twin if isinstance(twin, ReducedTwin) else None
+        self.fe_check = None
+        if self.rom_twin is not None and check_rate > 0:
+            self.fe_check = FeCheck(cfg, twin.rom.force_reference, twin.tolerance, check_rate, twin.request_resync,
+                                    self._warn)
+            self.fe_check.start()
         self._command_subs = {
             kind: self.create_subscription(
                 Float64MultiArray, f"command/{kind}", lambda m, kind=kind: self._on_command(kind, m), COMMAND_QOS,
@@ -162,6 +183,21 @@ class TwinNode(Node):
         values["unit_modes"] = list(self._check_modes(modes, base.n_units))
         return config_from_parameters(values, base)
 
+    def _make_twin(self, cfg: ArrayConfig) -> ArrayTwin | ReducedTwin:
+        """The FE twin, or with ``model: rom`` the reduced twin of ``rom_file`` (a ValueError says why not)."""
+        model = self.declare_parameter("model", "fe", ParameterDescriptor(
+            description="'fe': the finite-element twin; 'rom': the reduced model of rom_file (dea-twin rom train), "
+                        "the FE answering outside its envelope", read_only=True)).value
+        rom_file = self.declare_parameter("rom_file", "", ParameterDescriptor(
+            description="ROM file (.npz) for model: rom", read_only=True)).value
+        if model == "fe":
+            return ArrayTwin(cfg)
+        if model != "rom":
+            raise ConfigError(f"model: must be 'fe' or 'rom', got {model!r}")
+        if not rom_file:
+            raise ConfigError("rom_file: model 'rom' needs a ROM file (train one with dea-twin rom train)")
+        return ReducedTwin(cfg, load_rom(rom_file, cfg))
+
     def _check_modes(self, modes: object, n_units: int | None = None) -> tuple[str, ...]:
         """``modes`` as a tuple, or ConfigError naming ``unit_modes``."""
         if not isinstance(modes, (list, tuple)) or not all(isinstance(m, str) for m in modes):
@@ -191,6 +227,8 @@ class TwinNode(Node):
                 return SetParametersResult(successful=False, reason=str(exc))
             self.config = cfg
             self.updater.set_config(cfg)
+            if self.fe_check is not None:
+                self.fe_check.set_config(cfg)
         if modes is not None:
             self.modes = modes
             self.config = self.config.replace(unit_modes=modes)
@@ -225,8 +263,12 @@ class TwinNode(Node):
         self.get_logger().error(f"{text}; the twin keeps running without recording")
 
     def destroy_node(self) -> None:
-        """Stop the solver thread, finish the recording (if any), then destroy the node."""
+        """Stop the solver thread (and the FE check), finish the recording (if any), then destroy the node."""
         self.updater.stop()
+        if self.fe_check is not None:
+            self.fe_check.stop()
+        if self.rom_twin is not None:
+            self.rom_twin.close()
         if self.recorder is not None:
             self.recorder.close()
             self.recorder = None
@@ -280,6 +322,8 @@ class TwinNode(Node):
         states.position = [float(v) for v in res.centre_deflection]
         states.effort = [float(v) for v in res.force]
         self.pub_states.publish(states)
+        if self.fe_check is not None:
+            self.fe_check.post(res)
 
     def _publish_marker(self) -> None:
         res = self.result
@@ -338,6 +382,11 @@ class TwinNode(Node):
                           recorder_backlog=self.recorder.backlog)
         else:
             values["recording"] = self.recording_error or "off"
+        values["model"] = "fe"
+        if self.rom_twin is not None:
+            rom_problem = self._rom_diagnostics(values, res)
+            if rom_problem and status.level == DiagnosticStatus.OK:
+                status.level, status.message = DiagnosticStatus.WARN, rom_problem
         if res is not None:
             values.update(iterations=res.iterations, residual_N=res.residual, solve_time_ms=1e3 * res.solve_time,
                           stable=res.stable, wrinkled=res.wrinkled, field_exceeded=res.field_exceeded,
@@ -347,6 +396,34 @@ class TwinNode(Node):
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(msg)
+
+
+    def _rom_diagnostics(self, values: dict, res: TwinResult | None) -> str:
+        """Add the reduced twin's counters and the FE check's differences to ``values``; a problem, or ''."""
+        twin = self.rom_twin
+        fallbacks = twin.fallbacks
+        values.update(model="rom", rom_file=twin.rom.config_hash, rom_tolerance=twin.tolerance,
+                      rom_updates=twin.updates, rom_refreshes=twin.refreshes, rom_resyncs=twin.resyncs,
+                      **{f"rom_fallbacks_{kind}": fallbacks.get(kind, 0)
+                         for kind in ("envelope", "indicator", "newton")})
+        if res is not None:
+            values.update(rom_error_indicator=getattr(res, "error_indicator", math.nan),
+                          rom_fallback=getattr(res, "fallback", "") or "none")
+        if self.fe_check is None:
+            values["fe_check"] = "off"
+            return ""
+        check = self.fe_check.stats()
+        values.update(fe_checks=check.checks, fe_check_failures=check.failures,
+                      fe_check_ms=round(check.last_check_ms, 2),
+                      rom_fe_force_difference=check.last_force_difference,
+                      rom_fe_capacitance_difference=check.last_capacitance_difference,
+                      rom_fe_force_difference_max=check.max_force_difference,
+                      rom_fe_capacitance_difference_max=check.max_capacitance_difference)
+        worst = max(check.last_force_difference, check.last_capacitance_difference)
+        if worst > twin.tolerance:
+            return (f"reduced model differs from the FE by {worst:.3%} at the last check, above its tolerance "
+                    f"{twin.tolerance:.3%} (resynchronised)")
+        return check.last_error and f"FE check failed: {check.last_error}"
 
 
 def main(args: Sequence[str] | None = None) -> None:

@@ -1,20 +1,19 @@
 """The reduced twin (a hyper-reduced model trained from the FE) against the FE it was trained from.
 
-One small ROM of the coarse 1-by-3 array is trained per module (about 25 FE snapshots):
-every unit driven, d in [0, 8] mm, units 2 and 3 up to 2500 V and unit 1 never
-energised, so that "voltage on an untrained unit" is a command outside its envelope.
+The ROM is conftest's ``coarse_rom``, trained once per session: every unit driven, d in
+[0, 8] mm, units 2 and 3 up to 2500 V and unit 1 never energised, so that "voltage on an
+untrained unit" is a command outside its envelope.
 """
 
 import dataclasses
 
 import numpy as np
 import pytest
-from conftest import COARSE
 
-from dea_array_twin import ArrayConfig, ArrayTwin
+from dea_array_twin import ArrayTwin
 from dea_array_twin.model.reduced import Envelope, RomMismatchError
 from dea_array_twin.model.reduced_twin import ReducedTwin
-from dea_array_twin.rom.train import train
+from dea_array_twin.model.solver import SolveCancelled
 from dea_array_twin.romfile import RomFileError, load_rom, save_rom
 
 TOLERANCE = 2e-3
@@ -22,19 +21,13 @@ D_MAX, V_MAX = 0.008, 2500.0
 
 
 @pytest.fixture(scope="module")
-def cfg():
-    return ArrayConfig(**COARSE)
+def cfg(coarse_rom):
+    return coarse_rom[0]
 
 
 @pytest.fixture(scope="module")
-def trained(cfg):
-    envelope = Envelope(("driven",) * 3, np.zeros(3), np.full(3, D_MAX), np.zeros(3), np.array([0.0, V_MAX, V_MAX]))
-    return train(cfg, envelope, n_snapshots=26, n_modes=14, tolerance=TOLERANCE, n_validation=6, seed=3)
-
-
-@pytest.fixture(scope="module")
-def rom(trained):
-    return trained.rom
+def rom(coarse_rom):
+    return coarse_rom[1]
 
 
 def _errors(res, fe, rom):
@@ -43,8 +36,8 @@ def _errors(res, fe, rom):
             float(np.max(np.abs(res.capacitance - fe.capacitance) / fe.capacitance)))
 
 
-def test_training_validates_within_the_tolerance_on_held_out_commands(trained):
-    table = trained.rom.validation
+def test_training_validates_within_the_tolerance_on_held_out_commands(rom):
+    table = rom.validation
     assert table["commands"] == 6 and table["snapshots"] == 26
     assert table["force_error_max"] <= TOLERANCE and table["capacitance_error_max"] <= TOLERANCE
     # the errors are real numbers, not zeros from comparing the model with itself
@@ -184,3 +177,21 @@ def test_a_rom_for_another_config_is_refused_and_a_file_round_trips(cfg, rom, tm
         load_rom(tmp_path / "bad.npz")
     with pytest.raises(RomFileError, match="does not exist"):
         load_rom(tmp_path / "missing.npz")
+
+
+def test_a_resync_restarts_the_reduced_state_from_the_fe_and_a_cancel_keeps_the_last_state(cfg, rom):
+    """The node's FE check hands an FE result to the reduced twin (from another thread): the next
+    solve starts from it, converges and agrees with the FE; a cancelled cold start changes nothing."""
+    twin, fe = ReducedTwin(cfg, rom), ArrayTwin(cfg)
+    first = twin.solve([0.003, 0.004, 0.002], [0.0, 900.0, 300.0])
+    d, v = [0.004, 0.006, 0.003], [0.0, 1500.0, 800.0]
+    twin.request_resync(fe.solve(d, v))
+    res = twin.solve(d, v)
+    assert twin.resyncs == 1 and res.fallback == "" and res.factorisations >= 1  # a cold start: refreshed
+    assert max(_errors(res, fe.solve(d, v), rom)) <= TOLERANCE
+    twin.reset()
+    with pytest.raises(SolveCancelled):
+        twin.solve(d, v, cancel=lambda: True)
+    assert twin.last is None and twin.updates == 2 and first.fallback == ""
+    again = twin.solve(d, v)
+    np.testing.assert_allclose(again.force, res.force, rtol=1e-6, atol=1e-9)
