@@ -31,6 +31,7 @@ state from the FE state.
 from __future__ import annotations
 
 import math
+import sys
 import time
 from typing import Sequence
 
@@ -130,6 +131,10 @@ class TwinNode(Node):
                                     "thread (difference in /diagnostics, resync above the ROM's tolerance); 0 = off")
         #: The reduced twin (model: rom) and its FE check, else None.
         self.rom_twin = twin if isinstance(twin, ReducedTwin) else None
+        if self.rom_twin is not None and self.update_rate > 0:
+            # The solver thread needs the GIL for ~50 us of Python per update; with the default
+            # 5 ms switch interval it can wait several ticks behind the executor's thread.
+            sys.setswitchinterval(min(sys.getswitchinterval(), 0.1 / self.update_rate))
         self.fe_check = None
         if self.rom_twin is not None and check_rate > 0:
             self.fe_check = FeCheck(cfg, twin.rom.force_reference, twin.tolerance, check_rate, twin.request_resync,
