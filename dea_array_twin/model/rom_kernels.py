@@ -65,6 +65,24 @@ def point_maps(disc: Discretisation, elements: np.ndarray, points: np.ndarray, v
 
 
 @numba.njit(inline="always", **_JIT)
+def _state(fmap, p, z, f, c10, c20, c30, k):
+    """``F = A_p z`` into ``f``; returns ``(c0, c1, c2, det C, x = I - 3, Y'(x), g0, g1, g2)`` at point ``p``."""
+    for c in range(6):
+        acc = 0.0
+        for j in range(fmap.shape[2]):
+            acc += fmap[p, c, j] * z[j]
+        f[c] = acc
+    c0 = f[0] * f[0] + f[2] * f[2] + f[4] * f[4]
+    c1 = f[1] * f[1] + f[3] * f[3] + f[5] * f[5]
+    c2 = f[0] * f[1] + f[2] * f[3] + f[4] * f[5]
+    det = c0 * c1 - c2 * c2
+    xv = c0 + c1 + 1.0 / det - 3.0
+    dy = c10 + xv * (2.0 * c20 + 3.0 * c30 * xv)
+    a = dy / det**2
+    return c0, c1, c2, det, xv, dy, dy - (a + k) * c1, dy - (a + k) * c0, 2.0 * (a + k) * c2
+
+
+@numba.njit(inline="always", **_JIT)
 def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max):
     np_, _, nc = fmap.shape
     nw = wmap.shape[2]
@@ -77,23 +95,9 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
     f = np.empty(6)
     pk = np.empty(6)
     for p in range(np_):
-        for c in range(6):
-            acc = 0.0
-            for j in range(nc):
-                acc += fmap[p, c, j] * z[j]
-            f[c] = acc
-        c0 = f[0] * f[0] + f[2] * f[2] + f[4] * f[4]
-        c1 = f[1] * f[1] + f[3] * f[3] + f[5] * f[5]
-        c2 = f[0] * f[1] + f[2] * f[3] + f[4] * f[5]
-        det = c0 * c1 - c2 * c2
         u = unit[p]
         k = maxwell[u] if u >= 0 else 0.0
-        xv = c0 + c1 + 1.0 / det - 3.0
-        dy = c10 + xv * (2.0 * c20 + 3.0 * c30 * xv)
-        a = dy / det**2
-        g0 = dy - (a + k) * c1
-        g1 = dy - (a + k) * c0
-        g2 = 2.0 * (a + k) * c2
+        c0, c1, c2, det, xv, _, g0, g1, g2 = _state(fmap, p, z, f, c10, c20, c30, k)
         s00, s11, s01 = 2.0 * g0, 2.0 * g1, g2
         if u >= 0 and det > det_max[u]:
             det_max[u] = det
@@ -363,23 +367,11 @@ def _hessian(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, hz, hm):
                 a[c, j] = fmap[p, c, j]
             for j in range(nw):
                 a[c, nc + j] = wmap[p, c, j]
-            acc = 0.0
-            for j in range(nc):
-                acc += fmap[p, c, j] * z[j]
-            f[c] = acc
-        c0 = f[0] * f[0] + f[2] * f[2] + f[4] * f[4]
-        c1 = f[1] * f[1] + f[3] * f[3] + f[5] * f[5]
-        c2 = f[0] * f[1] + f[2] * f[3] + f[4] * f[5]
-        det = c0 * c1 - c2 * c2
         u = unit[p]
         km = maxwell[u] if u >= 0 else 0.0
-        xv = c0 + c1 + 1.0 / det - 3.0
-        dy = c10 + xv * (2.0 * c20 + 3.0 * c30 * xv)
+        c0, c1, c2, det, xv, dy, g0, g1, g2 = _state(fmap, p, z, f, c10, c20, c30, km)
         ddy = 2.0 * c20 + 6.0 * c30 * xv
         inv2 = 1.0 / det**2
-        g0 = dy - (dy * inv2 + km) * c1
-        g1 = dy - (dy * inv2 + km) * c0
-        g2 = 2.0 * (dy * inv2 + km) * c2
         # H = d2Psi/dc2 (material.energy_derivatives)
         dj0, dj1, dj2 = c1, c0, -2.0 * c2
         di0, di1, di2 = 1.0 - inv2 * dj0, 1.0 - inv2 * dj1, -inv2 * dj2
