@@ -19,7 +19,6 @@ from pathlib import Path
 
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
-from ..model.membrane import DRIVEN
 from ..model.reduced import Envelope, ReducedModel
 from ..model.solver import ConvergenceError
 from ..parallel import ExecutorError
@@ -44,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--voltage-range", type=float_list(count=2, example="0,2730"),
                        help="voltage range of every unit [V] (default 0 to the eq. 14 voltage)")
     train.add_argument("--unit-modes", type=word_list,
-                       help="per-unit mode, 'driven' or 'free', comma separated (default: all driven)")
+                       help="per-unit mode, 'driven' or 'free', comma separated (default: the config's "
+                            "unit_modes)")
     train.add_argument("--seed", type=int, default=0, help="sampling seed (validation uses seed + 1)")
     where = train.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=1, help="local worker processes for the FE snapshots")
@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _envelope(cfg: ArrayConfig, args: argparse.Namespace) -> Envelope:
-    modes = tuple(args.unit_modes or [DRIVEN] * cfg.n_units)
+    modes = tuple(args.unit_modes or cfg.modes)
     d = args.displacement_range or (0.0, 0.75 * cfg.scaled("electrode_diameter"))
     v = args.voltage_range or (0.0, cfg.hv_voltage())
     if max(abs(d[0]), abs(d[1])) > cfg.scaled("max_displacement"):

@@ -29,7 +29,7 @@ import numpy as np
 from scipy.stats import qmc
 
 from .config import ArrayConfig
-from .membrane import DRIVEN, check_modes
+from .membrane import DRIVEN, FREE, check_modes
 
 #: Format version of :meth:`ReducedModel.to_arrays`; a file of another version is refused.
 FORMAT_VERSION = 1
@@ -39,9 +39,11 @@ class RomMismatchError(ValueError):
     """A ROM does not belong to the configuration (or the file format) it is used with."""
 
 
-#: Config fields that bound or label commands without changing the model's equations (the
-#: node may change the first two at run time): a ROM does not depend on them.
-UNCHECKED_FIELDS = ("max_displacement", "breakdown_field", "experimental_hv_prestretch", "experimental_hv_voltage")
+#: Config fields that bound, label or choose commands without changing the model's equations
+#: (the node may change the first three at run time): a ROM does not depend on them.  The unit
+#: modes it answers are those of its envelope; others go to the FE.
+UNCHECKED_FIELDS = ("max_displacement", "breakdown_field", "unit_modes", "experimental_hv_prestretch",
+                    "experimental_hv_voltage")
 
 
 def _model_fields(cfg: ArrayConfig) -> dict:
@@ -79,6 +81,9 @@ class Envelope:
     def box(cls, modes: Sequence[str], displacement: tuple[float, float], voltage: tuple[float, float]) -> "Envelope":
         """The same displacement range [m] for every driven unit and voltage range [V] for every unit."""
         modes = check_modes(modes, len(modes))
+        if any(m not in (DRIVEN, FREE) for m in modes):
+            raise ValueError(f"a ROM envelope holds driven and free units only (biased units are not reduced "
+                             f"yet), got modes {list(modes)}")
         n = len(modes)
         lo, hi = float(displacement[0]), float(displacement[1])
         vlo, vhi = float(voltage[0]), float(voltage[1])

@@ -211,6 +211,10 @@ class ReducedTwin:
         self._breakdown = cfg.breakdown_field
         self._flat_capacitance = model.flat_capacitance
         self._reference = rom.reference
+        self._zeros = np.zeros(self.n_units)  # velocity, bias and external force: no biased units, quasi-static
+        self._zeros.flags.writeable = False
+        self._none = np.zeros(self.n_units, dtype=bool)  # lifted_off: no contact without biased units
+        self._none.flags.writeable = False
         self.tolerance = float(tolerance if tolerance is not None else rom.tolerance)
         self.second_step = float(second_step if second_step is not None else min(1e-3, self.tolerance))
         self.refresh_distance = refresh_distance
@@ -365,7 +369,7 @@ class ReducedTwin:
     def solve(self, displacement: Sequence[float] | float | None = None,
               voltage: Sequence[float] | float | None = None,
               modes: Sequence[str] | None = None, check_stability: bool | None = None,
-              cancel: Callable[[], bool] | None = None) -> TwinResult:
+              cancel: Callable[[], bool] | None = None, force: Sequence[float] | float | None = None) -> TwinResult:
         """Move to a new command and return the state there (see :meth:`.ArrayTwin.solve`).
 
         Answered by the reduced model inside the envelope, by the FE otherwise
@@ -375,6 +379,9 @@ class ReducedTwin:
         positive definite.  ``cancel`` is asked between reduced Newton iterations (a
         jump or a cold start) and by an FE fallback; when it returns True the solve
         raises :class:`SolveCancelled` and the twin keeps its previous state.
+        ``force`` (external forces on biased indenters [N]) only matters to an FE
+        fallback: the reduced model has no biased units (a mode set with one is
+        outside every envelope).
 
         Raises
         ------
@@ -400,7 +407,7 @@ class ReducedTwin:
         if code == 3 or modes != self.modes:
             modes = self.model.check_modes(modes)
             reason = self.rom.envelope.violation(d1, v1, modes) or "outside the envelope"
-            return self._fallback("envelope", reason, d1, v1, modes, check_stability, cancel, tic)
+            return self._fallback("envelope", reason, d1, v1, modes, check_stability, cancel, tic, force=force)
         try:
             result = self._reduced(d1, v1, far, bool(check_stability), cancel, tic)
         except SolveCancelled:
@@ -457,9 +464,9 @@ class ReducedTwin:
 
     def _fallback(self, kind: str, reason: str, d1: np.ndarray, v1: np.ndarray, modes: tuple,
                   check_stability: bool | None, cancel: Callable[[], bool] | None, tic: float,
-                  indicator: float = math.nan) -> ReducedResult:
+                  indicator: float = math.nan, force=None) -> ReducedResult:
         """Answer with the FE; resynchronise the reduced state from it when the command is in the envelope."""
-        res = self.fe.solve(d1, v1, modes, check_stability, cancel=cancel)
+        res = self.fe.solve(d1, v1, modes, check_stability, cancel=cancel, force=force)
         self.fallbacks[kind] += 1
         self._modes, self._displacement, self._voltage = res.modes, res.displacement.copy(), v1
         if kind != "envelope":

@@ -34,7 +34,7 @@ from .ecsw import sparse_nnls
 from .kernels import internal_forces, tangent_values
 from .linsolve import Factoriser
 from .material import energy_gradient, principal_cauchy_stresses
-from .membrane import DRIVEN, MembraneModel
+from .membrane import DRIVEN, FREE, MembraneModel
 from .reduced import Envelope, ReducedModel, config_hash
 from .rom_kernels import point_maps
 
@@ -208,6 +208,9 @@ def build_reduced_model(model: MembraneModel, envelope: Envelope, snaps: Snapsho
     """
     say = progress or (lambda text: None)
     modes = envelope.modes
+    if any(m not in (DRIVEN, FREE) for m in modes):
+        raise ValueError(f"a ROM holds driven and free units only (biased units are not reduced yet), "
+                         f"got {list(modes)}")
     n = snaps.positions.shape[0]
     if not 1 <= n_modes <= n:
         raise ValueError(f"n_modes must be in [1, {n}] (the number of snapshots), got {n_modes}")

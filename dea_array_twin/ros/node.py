@@ -201,7 +201,12 @@ class TwinNode(Node):
             raise ConfigError(f"model: must be 'fe' or 'rom', got {model!r}")
         if not rom_file:
             raise ConfigError("rom_file: model 'rom' needs a ROM file (train one with dea-twin rom train)")
-        return ReducedTwin(cfg, load_rom(rom_file, cfg))
+        twin = ReducedTwin(cfg, load_rom(rom_file, cfg))
+        if cfg.modes != twin.modes:
+            self.get_logger().warning(
+                f"unit_modes {list(cfg.modes)} differ from the modes the ROM was trained for ({list(twin.modes)}): "
+                "the FE answers every update until they match")
+        return twin
 
     def _check_modes(self, modes: object, n_units: int | None = None) -> tuple[str, ...]:
         """``modes`` as a tuple, or ConfigError naming ``unit_modes``."""
