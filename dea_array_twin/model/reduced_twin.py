@@ -234,6 +234,8 @@ class ReducedTwin:
 
     @config.setter
     def config(self, cfg: ArrayConfig) -> None:
+        if cfg is self._config:  # the node sets it before every update: no hash for the same object
+            return
         check_config(self.rom, cfg)
         self._config = self.fe.config = cfg
         self._limit = cfg.scaled("max_displacement")
