@@ -11,7 +11,10 @@ makes every Nth voltage command one beyond electromechanical stability, accepted
 raised ``breakdown_field``, where Newton fails slowly).  Reports:
 
 * commands sent and commands in the bag, per topic; the recorder's dropped count;
-* the largest gaps between consecutive outputs and diagnostics received here;
+* the largest gaps between consecutive outputs and diagnostics received here, and
+  between their log times in the bag (received inside the node's process by its
+  recorder: this process's own stalls do not count there; the gaps between the
+  recorded commands show those stalls of the sender);
 * solve time p50 / p95 / max as the node's diagnostics report them (over 10 s windows:
   the median of the p50s, the largest p95 and max), budget overruns, skipped ticks;
 * the output latency of the node: for each displacement command, the time from its
@@ -25,11 +28,11 @@ Not a test: numbers for the notes.
 from __future__ import annotations
 
 import argparse
+import bisect
 import os
 import sys
 import tempfile
 import time
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -73,47 +76,68 @@ def soak(duration: float, update_rate: float, command_rate: float, coarse: bool,
         gaps = {name: _gap(h.receive_times(name), start, end) for name in ("force", "unit_states", "/diagnostics")}
         sent = dict(h.sent)
     bag = next(folder.glob("*.mcap"))
-    counts: Counter = Counter()
+    run = {
+        "duration_s": duration, "update_rate_hz": update_rate, "command_rate_hz": command_rate,
+        "mesh": "coarse" if coarse else "default", "bag": str(bag), "sent": sent, "max_gap_s": gaps,
+        "load_before": load_before, "load_after": os.getloadavg(),
+    }
+    for key, value in run.items():  # before the bag is read (which takes a while)
+        print(f"{key}: {value}", flush=True)
+    return {**run, **analyse(bag, diagnostics)}
+
+
+def analyse(bag: Path, diagnostics: list[dict]) -> dict:
+    """Message counts of the bag, the node's solve statistics and its output latency."""
+    from mcap.reader import make_reader
+
+    with open(bag, "rb") as f:
+        summary = make_reader(f).get_summary()
+    topics = {c.id: c.topic for c in summary.channels.values()}
+    counts = {topics[k]: v for k, v in summary.statistics.channel_message_counts.items()}
     commands, states = [], []
-    for m in read_ros2_messages(str(bag)):
-        counts[m.channel.topic] += 1
-        if m.channel.topic == "/command/displacement":
-            commands.append((m.log_time_ns, tuple(m.ros_msg.data)))
-        elif m.channel.topic == "/unit_states":
-            states.append((m.log_time_ns, tuple(m.ros_msg.position)))
-    latency = _latencies(commands, states)
+    for m in read_ros2_messages(str(bag), topics=["/command/displacement", "/unit_states"]):
+        target = commands if m.channel.topic == "/command/displacement" else states
+        target.append((m.log_time_ns, tuple(m.ros_msg.data if target is commands else m.ros_msg.position)))
+    logged: dict[str, list[int]] = {}
+    with open(bag, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(topics=["/force", "/diagnostics",
+                                                                          "/command/displacement"]):
+            logged.setdefault(channel.topic, []).append(message.log_time)
     final = diagnostics[-1]
     p50s = [float(d["solve_time_p50_ms"]) for d in diagnostics if d.get("solve_time_p50_ms", "nan") != "nan"]
     return {
-        "duration_s": duration, "update_rate_hz": update_rate, "command_rate_hz": command_rate,
-        "mesh": "coarse" if coarse else "default", "bag": str(bag), "sent": sent,
-        "in_bag": {"displacement": counts["/command/displacement"], "voltage": counts["/command/voltage"]},
-        "outputs_in_bag": counts["/force"], "recorder_dropped": final.get("recorder_dropped"),
-        "max_gap_s": gaps,
+        "in_bag": {"displacement": counts.get("/command/displacement", 0),
+                   "voltage": counts.get("/command/voltage", 0)},
+        "outputs_in_bag": counts.get("/force", 0), "recorder_dropped": final.get("recorder_dropped"),
+        "max_gap_in_bag_s": {topic: float(np.diff(times).max()) * 1e-9 for topic, times in logged.items()},
         "solve_ms": {"p50 (median of windows)": float(np.median(p50s)) if p50s else float("nan"),
                      "p95 (largest)": max(float(d.get("solve_time_p95_ms", "nan")) for d in diagnostics),
                      "max": max(float(d.get("solve_time_max_ms", "nan")) for d in diagnostics)},
         "updates": final["updates"], "budget_overruns": final["budget_overruns"],
         "failed_solves": final["failed_solves"], "skipped_ticks": final["skipped_ticks"],
-        "output_latency_ms": latency, "load_before": load_before, "load_after": os.getloadavg(),
+        "output_latency_ms": _latencies(commands, states),
     }
 
 
 def _latencies(commands: list, states: list) -> dict:
-    """Receipt of each displacement command to the first unit_states showing it (ms), p50/p95/max."""
-    times = np.array([t for t, _ in states], dtype=np.int64)
-    out, answered = [], 0
+    """Receipt of each displacement command to the first unit_states showing it (ms), p50/p95/max.
+
+    Driven units report exactly the commanded displacement, so a command is answered by the
+    first later state whose positions equal its values.
+    """
+    shown: dict[tuple, list[int]] = {}
+    for t, values in states:
+        shown.setdefault(values, []).append(t)
+    out = []
     for t, values in commands:
-        i = int(np.searchsorted(times, t))
-        for j in range(i, len(states)):
-            if np.allclose(states[j][1], values, rtol=0, atol=1e-12):
-                out.append((states[j][0] - t) * 1e-6)
-                answered += 1
-                break
+        times = shown.get(values, [])
+        i = bisect.bisect_left(times, t)
+        if i < len(times):
+            out.append((times[i] - t) * 1e-6)
     arr = np.array(out)
     if not arr.size:
         return {"answered": 0, "of": len(commands)}
-    return {"answered": answered, "of": len(commands), "p50": float(np.percentile(arr, 50)),
+    return {"answered": int(arr.size), "of": len(commands), "p50": float(np.percentile(arr, 50)),
             "p95": float(np.percentile(arr, 95)), "max": float(arr.max())}
 
 
@@ -126,8 +150,9 @@ def main() -> None:
     parser.add_argument("--slow-every", type=int, default=0, help="every Nth voltage command fails slowly")
     args = parser.parse_args()
     result = soak(args.duration, args.update_rate, args.command_rate, args.coarse, args.slow_every)
-    for key, value in result.items():
-        print(f"{key}: {value}")
+    for key in ("in_bag", "outputs_in_bag", "recorder_dropped", "max_gap_in_bag_s", "solve_ms", "updates",
+                "budget_overruns", "failed_solves", "skipped_ticks", "output_latency_ms"):
+        print(f"{key}: {result[key]}")
 
 
 if __name__ == "__main__":

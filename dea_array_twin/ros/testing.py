@@ -41,6 +41,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from typing import Any, Callable
 
 import rclpy
@@ -104,6 +105,7 @@ class TwinHarness:
         self._times: dict[str, list[float]] = {}
         self.twin_node: TwinNode | None = None
         self.process: subprocess.Popen | None = None
+        self._output: deque[str] = deque(maxlen=500)  # the twin process's last log lines
         #: Exception raised by a callback on the executor thread (which then stops).
         self.spin_error: Exception | None = None
 
@@ -168,7 +170,7 @@ class TwinHarness:
                 return
             if self.process is not None and self.process.poll() is not None:
                 raise RuntimeError(f"twin process exited with {self.process.returncode}: "
-                                   f"{self.process.stdout.read()[-2000:]}")
+                                   f"{self.output()[-2000:]}")
             time.sleep(0.02)
         raise TimeoutError(f"twin not discovered on ROS domain {self.domain_id} within {timeout} s")
 
@@ -199,17 +201,29 @@ class TwinHarness:
         if self.namespace:
             args += ["-r", f"__ns:={self.namespace}"]
         self.process = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        # Read its log all the time: a full pipe would block the twin at its next log line.
+        reader = threading.Thread(target=self._read_output, daemon=True)
+        reader.start()
 
         def stop() -> None:
             if self.process.poll() is None:
-                self.process.send_signal(2)  # SIGINT: rclpy shuts down cleanly
+                self.process.send_signal(2)  # SIGINT: rclpy shuts down cleanly, the recording is finalised
                 try:
-                    self.process.wait(timeout=10.0)
+                    self.process.wait(timeout=30.0)
                 except subprocess.TimeoutExpired:
                     self.process.kill()
                     self.process.wait()
+            reader.join(timeout=5.0)
 
         self._stack.callback(stop)
+
+    def _read_output(self) -> None:
+        for line in self.process.stdout:
+            self._output.append(line)
+
+    def output(self) -> str:
+        """The last lines the twin process logged (stdout and stderr; ``process=True`` only)."""
+        return "".join(self._output)
 
     # ------------------------------------------------------------------ helpers
     def topic(self, name: str) -> str:
@@ -267,7 +281,7 @@ class TwinHarness:
                     from self.spin_error
             if self.process is not None and self.process.poll() is not None:
                 raise RuntimeError(f"twin process exited with {self.process.returncode}: "
-                                   f"{self.process.stdout.read()[-2000:]}")
+                                   f"{self.output()[-2000:]}")
             time.sleep(0.01)
         seen = self.messages(name)
         raise TimeoutError(f"no matching message on {name!r} within {timeout} s "
