@@ -152,16 +152,19 @@ def test_recordings_never_share_a_file_even_within_one_millisecond(tmp_path, mon
 
 
 def test_a_command_flood_with_slow_solves_mixed_in_records_every_command_and_outputs_keep_flowing(tmp_path):
-    """Both commands at 10x the update rate for 10 s.  Every 3.7 periods (not a whole number: the windows
-    drift against the twin's update timer), for 0.8 of a period, the voltage commanded is beyond
-    electromechanical stability, where Newton fails slowly (0.6-1.6 s on the default mesh): the twin
-    takes such a command at an update and has to abandon it (the window is over by then, so a newer
-    command waits).
-    The bag holds every command sent, nothing is dropped, and outputs and diagnostics never pause for
-    longer than 2 periods + the solve budget."""
+    """Both commands at 10x the update rate (1 Hz: long periods leave room for a loaded machine's
+    scheduling) for 15 s.  Every 3.7 periods (not a whole number: the windows drift against the twin's
+    update timer), for 0.8 of a period, the voltage commanded is beyond electromechanical stability,
+    where Newton fails slowly (0.6-1.6 s on the default mesh): the twin takes such a command at an
+    update and has to abandon it (the window is over by then, so a newer command waits).  The bag holds
+    every command sent, nothing is dropped, and outputs and diagnostics never pause for longer than 2
+    periods + the solve budget.  The pauses are measured in the node's process, from the log times its
+    recorder gives the outputs: the test process's own stalls under load are not the node's."""
+    from mcap.reader import make_reader
+
     from dea_array_twin.ros.testing import diagnostic_values
 
-    rate, budget, duration = 2.0, 0.2, 10.0
+    rate, budget, duration = 1.0, 0.2, 15.0
     period = 1.0 / rate
     params = dict(update_rate=rate, solve_budget=budget, record=True, record_dir=str(tmp_path),
                   breakdown_field=300e6)  # lets 6 kV pass the command check: the solver has to find out
@@ -171,26 +174,32 @@ def test_a_command_flood_with_slow_solves_mixed_in_records_every_command_and_out
         while time.monotonic() - start < duration:
             t = time.monotonic() - start
             slow = (t % (3.7 * period)) < 0.8 * period
-            h.send_displacement([0.0, 0.004 + 0.003 * np.sin(2 * t), 0.002])
-            h.send_voltage([0.0, 6000.0 if slow else 1000.0 + 500 * np.sin(t), 0.0])
+            h.send_displacement([0.0, 0.004 + 0.003 * np.sin(0.5 * t), 0.002])
+            h.send_voltage([0.0, 6000.0 if slow else 1000.0 + 500 * np.sin(0.3 * t), 0.0])
             k += 1
             time.sleep(max(0.0, start + k * period / 10 - time.monotonic()))
         h.send_voltage([0.0, 1000.0, 0.0])  # the last command solves: a slow one with nothing newer would run on
         h.send_displacement([0.0, 0.004, 0.002])
-        end = time.monotonic()
-        time.sleep(1.0)
+        time.sleep(2.0)
         diag = diagnostic_values(h.wait_for("/diagnostics", after=len(h.messages("/diagnostics")), timeout=5))
-        gaps = {name: np.diff([t for t in h.receive_times(name) if start <= t <= end + 0.5]).max()
-                for name in ("force", "unit_states", "/diagnostics")}
         sent = dict(h.sent)
     assert sent["voltage"] == sent["displacement"] > 0.9 * duration * 10 * rate
-    assert int(diag["budget_overruns"]) >= 3 and diag["recorder_dropped"] == "0", diag
-    assert gaps["force"] <= 2 * period + budget and gaps["unit_states"] <= 2 * period + budget, gaps
+    assert int(diag["budget_overruns"]) >= 2 and diag["recorder_dropped"] == "0", diag
+    path = _only_file(tmp_path)
+    logged: dict[str, list[int]] = {}
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages():
+            logged.setdefault(channel.topic, []).append(message.log_time)
+    assert len(logged["/command/displacement"]) == sent["displacement"]
+    assert len(logged["/command/voltage"]) == sent["voltage"]
+    first, last = logged["/command/displacement"][0], logged["/command/displacement"][-1]
+    gaps = {topic: np.diff([t for t in logged[topic] if first <= t <= last + 500_000_000]).max() * 1e-9
+            for topic in ("/force", "/unit_states", "/diagnostics")}
+    assert gaps["/force"] <= 2 * period + budget and gaps["/unit_states"] <= 2 * period + budget, gaps
     assert gaps["/diagnostics"] <= 2 * 1.0 + budget, gaps
-    with AnyReader([_only_file(tmp_path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as bag:
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as bag:  # rosbags agrees
         counts = Counter(conn.topic for conn, _, _ in bag.messages())
-    assert counts["/command/displacement"] == sent["displacement"]
-    assert counts["/command/voltage"] == sent["voltage"]
+    assert counts["/command/displacement"] == sent["displacement"] and counts["/command/voltage"] == sent["voltage"]
 
 
 def test_unwritable_record_dir_is_reported_and_the_twin_keeps_running(tmp_path):

@@ -104,7 +104,7 @@ def test_consecutive_abandonments_double_the_budget_so_a_stream_of_long_solves_i
         stop.set()
         thread.join()
     first = twin.log.index(("solved", 0.15))
-    assert twin.log[first - 2:first] == [("cancelled", 0.15)] * 2  # after 0.05 s and 0.1 s
+    assert twin.log[first - 2:first] == [("cancelled", 0.15)] * 2  # after 0.05 s and 0.1 s (or later ones)
     assert updater.stats().budget_overruns >= 2
 
 
