@@ -345,6 +345,41 @@ def _output_base(bag: Bag, out: str | None) -> Path:
     return bag.output_path("_replay")
 
 
+def default_fit_lag(bag: Bag) -> tuple[float, str]:
+    """How late the recording node's outputs may be [s], and why: for ``--fit-lag`` when not given.
+
+    The node answers a command when the solve that uses it ends: at its next update tick
+    (up to one period) plus the solve time.  So the lag is the longer of three update
+    periods and one period plus the longest solve the node's recorded ``/diagnostics``
+    report (``solve_time_max_ms``, the longest of each 10 s); 0 for a bag without the
+    twin's metadata (the outputs answer each command at once, as a replay's do).
+    """
+    recorded_rate = (bag.metadata(CONFIG_RECORD) or {}).get("update_rate", "0")
+    try:
+        rate = float(recorded_rate)
+    except ValueError:
+        _log(f"warning: recorded update_rate {recorded_rate!r} is not a number; pass --fit-lag")
+        rate = 0.0
+    if not rate > 0:
+        return 0.0, "no update rate recorded: outputs answer each command at once"
+    longest = 0.0
+    topics = [t for t, type_name in bag.topics.items() if type_name.endswith("DiagnosticArray")]
+    for msg in bag.messages(topics, decode=True):
+        for status in msg.decoded.status:
+            for kv in status.values:
+                if kv.key == "solve_time_max_ms":
+                    try:
+                        value = float(kv.value) * 1e-3
+                    except ValueError:
+                        continue
+                    if math.isfinite(value):
+                        longest = max(longest, value)
+    if 1.0 / rate + longest > 3.0 / rate:
+        return 1.0 / rate + longest, (f"one update period of the recording node plus the longest solve its "
+                                      f"diagnostics report, {longest * 1e3:.1f} ms")
+    return 3.0 / rate, "three update periods of the recording node"
+
+
 def _fit_table(fits: dict[str, np.ndarray], topics: dict[str, str], counts: dict[str, int]) -> str:
     kinds = [k for k in OUTPUTS if k in fits]
     n = len(next(iter(fits.values())))
@@ -431,15 +466,11 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
             for k, (t, v) in recorded.items() if t}
     if data:
         if fit_lag is None:
-            recorded_rate = (bag.metadata(CONFIG_RECORD) or {}).get("update_rate", "0")
-            try:
-                rate = float(recorded_rate)
-            except ValueError:
-                _log(f"warning: recorded update_rate {recorded_rate!r} is not a number; pass --fit-lag")
-                rate = 0.0
-            fit_lag = 3.0 / rate if rate > 0 else 0.0
+            fit_lag, why = default_fit_lag(bag)
+        else:
+            why = "--fit-lag"
         _log(f"FIT pairs each recorded output with a replayed state current up to {fit_lag * 1e3:.1f} ms before "
-             "it (three update periods of the recording node; --fit-lag to change)")
+             f"it ({why}; --fit-lag to change)")
         fits = compare_outputs(run, data, int(round(fit_lag * 1e9)))
         print(_fit_table(fits, outputs, {k: len(v[0]) for k, v in data.items()}))
     if compare:

@@ -485,3 +485,27 @@ def test_realtime_replay_republishes_commands_in_order_with_scaled_timing(tmp_pa
         # voltage 0.2 s after each displacement in the bag -> 0.1 s
         offsets = [tv - td for (td, _), (tv, _) in zip(disp, volt)]
         assert np.median(offsets) == pytest.approx(0.2 / rate, abs=0.05), (qos, offsets)
+
+
+def test_the_default_fit_lag_covers_the_longest_solve_the_recording_node_reported(tmp_path):
+    """At 50 Hz three periods are 60 ms; a node whose diagnostics report a 200 ms solve answered up to
+    one period + 200 ms late, so that is the window (a bag without the twin's metadata: 0)."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    from dea_array_twin.replay.offline import default_fit_lag
+
+    def diagnostics(solve_max_ms: str) -> DiagnosticArray:
+        status = DiagnosticStatus(name="twin", message="ok", hardware_id="dea_array_twin",
+                                  values=[KeyValue(key="solve_time_max_ms", value=solve_max_ms)])
+        return DiagnosticArray(status=[status])
+
+    meta = {"dea_array_twin_config": metadata_from_config(ArrayConfig(), MODES, 50.0)}
+    diag_type = "diagnostic_msgs/msg/DiagnosticArray"
+    quick = write_bag(tmp_path / "quick.mcap", [("/diagnostics", diag_type, diagnostics("12.5"), T0)], meta)
+    assert default_fit_lag(Bag(quick)) == (pytest.approx(0.06), "three update periods of the recording node")
+    slow = write_bag(tmp_path / "slow.mcap", [("/diagnostics", diag_type, diagnostics(v), T0 + i)
+                                              for i, v in enumerate(["12.5", "200.0", "nan"])], meta)
+    lag, why = default_fit_lag(Bag(slow))
+    assert lag == pytest.approx(0.02 + 0.2) and "200.0 ms" in why
+    plain = write_bag(tmp_path / "plain.mcap", [("/diagnostics", diag_type, diagnostics("200.0"), T0)])
+    assert default_fit_lag(Bag(plain))[0] == 0.0

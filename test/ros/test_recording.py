@@ -116,6 +116,8 @@ def test_two_twins_started_in_the_same_second_write_two_readable_bags(tmp_path):
     import subprocess
     import sys
 
+    from dea_array_twin.ros.testing import diagnostic_values
+
     params = {"update_rate": 20.0, "record": True, "record_dir": str(tmp_path), "marker_rate": 0.0}
     with TwinHarness(parameters=params, process=True) as h:
         env = dict(os.environ, ROS_DOMAIN_ID=str(h.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
@@ -124,6 +126,17 @@ def test_two_twins_started_in_the_same_second_write_two_readable_bags(tmp_path):
                                   env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
             h.wait_for("/diagnostics", lambda m: "2 nodes named /dea_array_twin" in m.status[0].message, timeout=60)
+            # Both twins report their command subscriptions (and their recorders') connected to ours:
+            # every diagnostics message of the last 2.5 s (both twins publish at 1 Hz) says so.
+            deadline = time.monotonic() + 60
+            while True:
+                now = time.monotonic()
+                recent = [diagnostic_values(m) for m, t in zip(h.messages("/diagnostics"),
+                                                                h.receive_times("/diagnostics")) if t > now - 2.5]
+                if len(recent) >= 4 and all(v.get("command_publishers_displacement", "0") != "0" for v in recent):
+                    break
+                assert now < deadline, recent
+                time.sleep(0.1)
             h.send_displacement([0.0, 0.002, 0.0])
             time.sleep(1.0)
         finally:
