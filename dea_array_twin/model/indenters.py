@@ -149,14 +149,21 @@ class IndenterBorder:
             self._cache = (fact, y, kwf, kww)
         return self._cache[1:]
 
-    def schur(self, fact, w: np.ndarray, static: bool = False) -> np.ndarray:
-        """``S = K_ww - K_wf K_ff^-1 K_fw`` at heights ``w`` (``static``: without inertial terms)."""
+    def membrane_stiffness(self, fact) -> np.ndarray:
+        """``dF_i/dw_j = K_ww - K_wf K_ff^-1 K_fw`` [N/m]: the membrane's stiffness condensed onto the heights.
+
+        Symmetric (the membrane force derives from its energy); its diagonal is the slope of
+        a unit's driven force curve with the other disks held, the rest the coupling."""
         y, kwf, kww = self._blocks(fact)
+        return kww - kwf @ y
+
+    def schur(self, fact, w: np.ndarray, static: bool = False) -> np.ndarray:
+        """``S = K_ww - K_wf K_ff^-1 K_fw - dG/dw`` at heights ``w`` (``static``: without inertial terms)."""
         if static:
             slope = [self.load.static_slope(k, wk) for k, wk in zip(self.units, w)]
         else:
             slope = [self.load(k, wk, self.t)[1] for k, wk in zip(self.units, w)]
-        return kww - np.diag(slope) - kwf @ y
+        return self.membrane_stiffness(fact) - np.diag(slope)
 
     def direction(self, fact, r_f: np.ndarray, r_w: np.ndarray, x: np.ndarray,
                   balanced: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
