@@ -73,13 +73,16 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the twin node plus the example wave controller, printing what they do")
     demo.add_argument("config", nargs="?", help="config YAML (default: the paper's 1-by-3 array)")
     demo.add_argument("--duration", type=float, default=20.0, help="seconds to run (default 20; 0 = until Ctrl-C)")
-    from . import actuator, calibrate, plot, replay, rom, study
+    from . import actuator, calibrate, design, plot, replay, rom, study
 
     actuator.add_arguments(
         sub.add_parser("stroke", help="biased units: quasi-static equilibrium at each voltage level in turn "
                                       "(stroke, force, capacitance, stability, snap-through)"),
         sub.add_parser("simulate", help="biased units: time response to voltage (and force) schedules, "
                                         "as JSON or CSV + PNG"))
+    design.add_arguments(sub.add_parser(
+        "design-bias", help="bias elements for the largest guaranteed stroke of every unit in the array (every "
+                            "neighbour scenario, stability margin, no snap-through), checked by full biased solves"))
     study.add_arguments(sub.add_parser(
         "study", help="the paper's studies: coupled curves, coupling indices (eqs. 13-16) and the five "
                       "parameter sweeps of section 6, as CSV + PNG, in parallel locally or on Dask"))
@@ -194,6 +197,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         from . import actuator
 
         return actuator.run_stroke(args) if args.command == "stroke" else actuator.run_simulate(args)
+    if args.command == "design-bias":
+        from . import design
+
+        return design.run(args)
     if args.command in ("replay", "plot", "study", "calibrate", "rom"):
         from . import calibrate, plot, replay, rom, study
 
