@@ -8,7 +8,8 @@ on stdout; with ``--out`` also ``design.yaml`` (a config whose ``unit_modes`` an
 ``bias`` are the design: ``dea-twin stroke DIR/design.yaml`` takes it), ``strokes.csv``
 (every unit in every scenario, both designs), ``summary.md`` and, with matplotlib (the
 ``plot`` extra), ``unit_K.png`` per designed unit (figures 5b/6b of the paper).  Exit
-codes: 0 ok, 1 no feasible design or a solve that fails, 2 bad arguments or config.
+codes: 0 ok, 1 no feasible design, a solve that fails, or a design whose full solves are
+unstable or snap through without ``--allow-snap``, 2 bad arguments or config.
 """
 
 from __future__ import annotations
@@ -99,4 +100,5 @@ def run(args: argparse.Namespace) -> int:
             for k in result.settings.units:
                 written.append(plot_unit(result, k, out / f"unit_{k + 1}.png").name)
         print(f"design-bias: wrote {', '.join(written)} to {out}", file=sys.stderr)
-    return 0 if result.aware.verification.all_stable else 1
+    full = result.aware.verification
+    return 0 if full.all_stable and (settings.allow_snap or not full.any_snap) else 1

@@ -148,5 +148,8 @@ def summary(result: BiasDesign) -> list[str]:
               f"{aware.max_bias_force:.4g} N; total {result.seconds:.0f} s."]
     if aware.any_hysteresis:
         lines.append("Warning: some stroke of the array-aware design does not return to its low state.")
+    if aware.any_snap and not s.allow_snap:
+        lines.append("Warning: the full solves of the array-aware design snap through where the inner model saw no "
+                     "snap (not allowed without --allow-snap): see `snapped` in the strokes CSV.")
     return lines
 
