@@ -2,12 +2,15 @@
 
 Interface (relative names, so ``-r __ns:=/left_array`` runs several arrays; SI units):
 
-* ``command/displacement``, ``command/voltage`` (std_msgs/Float64MultiArray, one value
-  per unit, m and V), subscribed best-effort with depth 1: reliable and best-effort
-  publishers both connect, and only the latest command is kept (sample and hold).
+* ``command/displacement``, ``command/voltage``, ``command/force``
+  (std_msgs/Float64MultiArray, one value per unit, m, V and N: the displacement of
+  driven units, the external force on biased indenters), subscribed best-effort with
+  depth 1: reliable and best-effort publishers both connect, and only the latest
+  command is kept (sample and hold).
 * ``force``, ``capacitance`` (std_msgs/Float64MultiArray, dim "unit"), ``unit_states``
-  (sensor_msgs/JointState: position = centre deflection, effort = force), published
-  reliable/volatile after each update; ``membrane`` (visualization_msgs/Marker
+  (sensor_msgs/JointState: position = the unit's position, ``w`` of a biased indenter,
+  the command of a driven one, the centre deflection of a free unit; velocity = ``w'``;
+  effort = the membrane force), published reliable/volatile after each update; ``membrane`` (visualization_msgs/Marker
   TRIANGLE_LIST) at ``marker_rate``; ``/diagnostics`` at 1 Hz and when a command
   publisher connects or leaves.
 * service ``reset`` (std_srvs/Trigger): all units to 0 m, 0 V, flat membrane.
@@ -26,6 +29,12 @@ trained for another config stops the start, naming the fields that differ), and
 thread ``fe_check_rate`` times a second: the ROM-vs-FE difference goes to
 ``/diagnostics``, and a difference above the ROM's tolerance restarts the reduced
 state from the FE state.
+
+With biased units that have a moving mass (config ``mass`` > 0) and ``update_rate`` > 0
+the node advances their dynamics: every tick of its update timer, on the node's clock
+(``use_sim_time`` honoured), is one time step of ``dt = 1 / update_rate``
+(:meth:`~dea_array_twin.model.twin.ArrayTwin.step`); otherwise every update is a
+quasi-static solve.
 """
 
 from __future__ import annotations
@@ -51,7 +60,7 @@ from visualization_msgs.msg import Marker
 
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
-from ..model.membrane import FREE, MODES, check_modes
+from ..model.membrane import BIASED, FREE, MODES, check_modes
 from ..model.reduced_twin import ReducedTwin
 from ..model.twin import ArrayTwin, TwinResult, command_error
 from ..romfile import load_rom
@@ -70,7 +79,7 @@ from .updater import TwinUpdater
 
 COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-COMMAND_KINDS = ("displacement", "voltage")
+COMMAND_KINDS = ("displacement", "voltage", "force")
 
 
 def unit_array(values: Sequence[float]) -> Float64MultiArray:
@@ -112,7 +121,8 @@ class TwinNode(Node):
         self.add_pre_set_parameters_callback(lambda params: coerce_doubles(params, RUNTIME_FIELDS))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.counters = {"rejected_displacement": 0, "rejected_voltage": 0, "displacement_on_free_unit": 0}
+        self.counters = {"rejected_displacement": 0, "rejected_voltage": 0, "rejected_force": 0,
+                         "displacement_on_free_unit": 0}
         self._last_warn: dict[str, float] = {}
         self.recorder = None
         self.recording_error = ""
@@ -123,9 +133,13 @@ class TwinNode(Node):
         self.pub_states = self.create_publisher(JointState, "unit_states", OUTPUT_QOS)
         self.pub_marker = self.create_publisher(Marker, "membrane", OUTPUT_QOS)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", OUTPUT_QOS)
+        masses = cfg.per_unit("mass")
+        #: Time step of the dynamics [s] (biased units with mass, a timer, the FE model), else None: quasi-static.
+        self.dynamics_dt = (1.0 / self.update_rate if self.update_rate > 0 and not isinstance(twin, ReducedTwin)
+                            and any(m > 0 for m, mode in zip(masses, cfg.modes) if mode == BIASED) else None)
         self.updater = TwinUpdater(twin, {kind: np.zeros(n) for kind in COMMAND_KINDS}, self.modes,
                                    self._publish_outputs, self._warn, self.solve_budget, stability_period,
-                                   event_driven=self.update_rate == 0)
+                                   event_driven=self.update_rate == 0, dynamics_dt=self.dynamics_dt)
         check_rate = declare_number(self, "fe_check_rate", 1.0,
                                     "model rom: FE re-solves of the latest command per second, in a background "
                                     "thread (difference in /diagnostics, resync above the ROM's tolerance); 0 = off")
@@ -156,7 +170,8 @@ class TwinNode(Node):
         self.get_logger().info(
             f"twin of {cfg.rows if cfg.layout == 'array' else 1}x{cfg.cols if cfg.layout == 'array' else 1} "
             f"{cfg.layout} ready: {self.model.mesh.n_elements} elements, {self.model.disc.n_dofs} dofs, "
-            f"update_rate {self.update_rate} Hz, solve_budget {self.solve_budget} s")
+            f"update_rate {self.update_rate} Hz, solve_budget {self.solve_budget} s"
+            + (f", dynamics with dt {self.dynamics_dt} s" if self.dynamics_dt is not None else ""))
 
     @property
     def result(self) -> TwinResult | None:
@@ -298,10 +313,12 @@ class TwinNode(Node):
             self._warn(kind, f"rejected {kind} command: {error}")
             return
         if kind == "displacement":
-            ignored = [k + 1 for k, (mode, d) in enumerate(zip(self.modes, msg.data)) if mode == FREE and d != 0.0]
+            ignored = [k + 1 for k, (mode, d) in enumerate(zip(self.modes, msg.data))
+                       if mode in (FREE, BIASED) and d != 0.0]
             if ignored:
                 self.counters["displacement_on_free_unit"] += 1
-                self._warn("free", f"displacement for free unit(s) {ignored} ignored: a free unit has no indenter "
+                self._warn("free", f"displacement for free or biased unit(s) {ignored} ignored: a free unit has no "
+                                   f"indenter, a biased one is moved by its bias and force "
                                    f"(unit_modes {list(self.modes)})", period=5.0)
         self.updater.post(kind, msg.data)
 
@@ -329,7 +346,8 @@ class TwinNode(Node):
         states.header.stamp = stamp
         states.header.frame_id = self.frame_id
         states.name = [f"unit_{k + 1}" for k in range(len(res.force))]
-        states.position = [float(v) for v in res.centre_deflection]
+        states.position = [float(v) for v in res.position]
+        states.velocity = [float(v) for v in res.velocity]
         states.effort = [float(v) for v in res.force]
         self.pub_states.publish(states)
         if self.fe_check is not None:
@@ -383,7 +401,8 @@ class TwinNode(Node):
             "solve_time_p95_ms": round(1e3 * stats.solve_time_p95, 3),
             "solve_time_max_ms": round(1e3 * stats.solve_time_max, 3),
             "solve_budget_s": self.solve_budget, "budget_overruns": stats.budget_overruns,
-            "failed_solves": stats.failed_solves, "skipped_ticks": stats.skipped_ticks, **self.counters,
+            "failed_solves": stats.failed_solves, "skipped_ticks": stats.skipped_ticks, "snaps": stats.snaps,
+            "lift_offs": stats.lift_offs, **self.counters,
             **{f"command_publishers_{kind}": self.command_publishers(kind) for kind in COMMAND_KINDS},
         }
         if self.recorder is not None:

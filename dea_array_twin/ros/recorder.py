@@ -51,6 +51,7 @@ __all__ = ["CONFIG_RECORD", "RECORDED_TOPICS", "TopicRecorder", "recording_name"
 RECORDED_TOPICS = {
     "command/displacement": "std_msgs/msg/Float64MultiArray",
     "command/voltage": "std_msgs/msg/Float64MultiArray",
+    "command/force": "std_msgs/msg/Float64MultiArray",
     "force": "std_msgs/msg/Float64MultiArray",
     "capacitance": "std_msgs/msg/Float64MultiArray",
     "unit_states": "sensor_msgs/msg/JointState",
@@ -59,7 +60,8 @@ RECORDED_TOPICS = {
 }
 #: Subscription queue depth per topic: 10 s of commands at 1 kHz; the outputs at 100 Hz for
 #: 20 s; the membrane marker (about 100 kB each) for 20 s at 5 Hz.
-QUEUE_DEPTH = {"command/displacement": 10_000, "command/voltage": 10_000, "membrane": 100, "/diagnostics": 100}
+QUEUE_DEPTH = {"command/displacement": 10_000, "command/voltage": 10_000, "command/force": 10_000, "membrane": 100,
+               "/diagnostics": 100}
 DEFAULT_DEPTH = 2_000
 #: Messages the writer thread may fall behind by before new ones are dropped (and counted).
 BACKLOG_LIMIT = 200_000

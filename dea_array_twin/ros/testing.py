@@ -253,7 +253,8 @@ class TwinHarness:
             self._times.clear()
 
     def send(self, kind: str, values) -> None:
-        """Publish a command of ``kind`` (``"displacement"`` [m] or ``"voltage"`` [V]), one value per unit."""
+        """Publish a command of ``kind`` (``"displacement"`` [m], ``"voltage"`` [V] or ``"force"`` [N]), one value
+        per unit."""
         self._pubs[kind].publish(Float64MultiArray(data=[float(v) for v in values]))
         self.sent[kind] += 1
 
@@ -264,6 +265,10 @@ class TwinHarness:
     def send_voltage(self, values) -> None:
         """Publish a voltage command [V], one value per unit."""
         self.send("voltage", values)
+
+    def send_force(self, values) -> None:
+        """Publish an external force command [N] on the biased indenters, one value per unit."""
+        self.send("force", values)
 
     def wait_for(self, name: str, predicate: Callable[[Any], bool] | None = None, timeout: float = 10.0,
                  after: int = 0) -> Any:

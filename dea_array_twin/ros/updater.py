@@ -29,6 +29,13 @@ keep the twin making progress:
   longer than the budget (a change of unit modes, a big jump under way) is not starved
   for ever, it is answered within about twice its solve time.
 
+With ``dynamics_dt`` (biased units with a moving mass) every tick advances the twin's
+dynamics: one :meth:`~dea_array_twin.model.twin.ArrayTwin.step` of ``dynamics_dt`` times
+the ticks since the last step (1 unless the thread fell behind, which is counted as
+skipped ticks), with the commands in the mailbox, new or not, from the quasi-static
+equilibrium the first update after start or ``reset`` solves.  Otherwise an update is a
+quasi-static solve, made only when a command changed.
+
 Counters, rates and solve-time percentiles for the node's diagnostics come from
 :meth:`~TwinUpdater.stats`.  No rclpy here: the node passes plain callables.
 """
@@ -61,19 +68,23 @@ class CommandSnapshot:
     ----------
     commands : mapping of str to ndarray
         Command kind -> one value per unit, SI units; the kinds are the keyword
-        arguments of :meth:`ArrayTwin.solve` (``displacement`` [m], ``voltage`` [V]).
+        arguments of :meth:`ArrayTwin.solve` (``displacement`` [m], ``voltage`` [V],
+        ``force`` [N]).
     modes : tuple of str
         ``"driven"`` / ``"free"`` per unit.
     config : ArrayConfig
         The config with the run-time parameters now in force.
     seq : int
         Increases with every change of the mailbox.
+    ticks : int
+        Update periods this update covers (a dynamic step advances by that many ``dt``).
     """
 
     commands: Mapping[str, np.ndarray]
     modes: tuple[str, ...]
     config: ArrayConfig
     seq: int
+    ticks: int = 1
 
 
 @dataclass
@@ -89,6 +100,8 @@ class UpdaterStats:
     failed_solves: int = 0
     budget_overruns: int = 0
     skipped_ticks: int = 0
+    snaps: int = 0
+    lift_offs: int = 0
     outputs: int = 0
     updates_per_s: float = 0.0
     outputs_per_s: float = 0.0
@@ -121,12 +134,15 @@ class TwinUpdater:
         Seconds between stability checks of the equilibrium (0 = every update).
     event_driven : bool
         Update on every change of the mailbox instead of on :meth:`tick`.
+    dynamics_dt : float, optional
+        Time step [s] of the dynamics advanced at every tick; None: quasi-static updates.
     """
 
     def __init__(self, twin: ArrayTwin, commands: Mapping[str, Sequence[float]], modes: Sequence[str],
                  publish: Callable[[TwinResult], None], log: Callable[[str, str], None], budget: float,
-                 stability_period: float, event_driven: bool = False):
+                 stability_period: float, event_driven: bool = False, dynamics_dt: float | None = None):
         self.twin = twin
+        self.dynamics_dt = dynamics_dt
         self._publish, self._log = publish, log
         self.budget, self.stability_period, self.event_driven = budget, stability_period, event_driven
         self._cond = threading.Condition()
@@ -157,6 +173,11 @@ class TwinUpdater:
         with self._cond:
             self._commands[kind] = np.array(values, dtype=float)
             self._changed()
+
+    def held(self, kind: str) -> np.ndarray:
+        """The command of ``kind`` in the mailbox now (what the next update uses)."""
+        with self._cond:
+            return self._commands[kind].copy()
 
     def set_modes(self, modes: Sequence[str]) -> None:
         """Use ``modes`` from the next update on (checked by the caller)."""
@@ -236,11 +257,11 @@ class TwinUpdater:
                         self._seq += 1
                     elif self._ticks > 1:  # ticks that passed while the last solve ran
                         self._stats.skipped_ticks += self._ticks - 1
-                    self._ticks = 0
+                    ticks, self._ticks = self._ticks, 0
                     snapshot = None
-                    if self._seq != self._solved_seq:
+                    if self._seq != self._solved_seq or (self.dynamics_dt is not None and ticks and not resets):
                         snapshot = CommandSnapshot({k: v.copy() for k, v in self._commands.items()}, self._modes,
-                                                   self._config, self._seq)
+                                                   self._config, self._seq, max(ticks, 1))
                         self._solved_seq = self._seq
                 if resets:
                     self.twin.reset()
@@ -296,15 +317,24 @@ class TwinUpdater:
         self._abandoned_in_a_row = 0
         if check:
             self._last_stability = start
+        lifted_before = self.result.lifted_off if self.result is not None else np.zeros_like(result.lifted_off)
         self.result = result
         with self._cond:
+            self._stats.snaps += len(result.snaps)
+            self._stats.lift_offs += int(np.count_nonzero(result.lifted_off & ~lifted_before))
             self._stats.updates += 1
             self._stats.last_error = ""
             self._solve_times.append((now, now - start))
 
     def _update_twin(self, snapshot: CommandSnapshot, check_stability: bool,
                      cancel: Callable[[], bool]) -> TwinResult:
-        """The one call into the twin per update (a new command kind is one more keyword)."""
+        """The one call into the twin per update (a new command kind is one more keyword).
+
+        Dynamics start from the quasi-static equilibrium: the first update after start or
+        ``reset`` is a solve, the next ones are time steps."""
         self.twin.config = snapshot.config
+        if self.dynamics_dt is not None and self.twin.last is not None:
+            return self.twin.step(self.dynamics_dt * snapshot.ticks, modes=snapshot.modes,
+                                  check_stability=check_stability, cancel=cancel, **snapshot.commands)
         return self.twin.solve(modes=snapshot.modes, check_stability=check_stability, cancel=cancel,
                                **snapshot.commands)
