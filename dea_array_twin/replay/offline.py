@@ -84,9 +84,11 @@ from ..bag.topics import (
     OUTPUTS,
     command_topics,
     output_topics,
+    select_topic,
 )
 from ..bag.twin_config import REPLAY_METADATA, metadata_from_config, resolve_config
 from ..bag.writer import CONFIG_RECORD
+from ..model.config import BIASED
 from ..model.metrics import fit
 from ..model.reduced_twin import ReducedTwin
 from ..model.solver import ConvergenceError
@@ -108,12 +110,15 @@ class ReplayRun:
     Attributes
     ----------
     times_ns : ndarray, shape (k,)
-        Log time of the command that triggered each solve [ns].
+        Log time of the command that triggered each solve, or the tick of each time step [ns].
     kinds : list of str
-        ``"displacement"`` or ``"voltage"``: which command triggered the solve.
+        ``"displacement"``, ``"voltage"`` or ``"force"``: which command triggered the
+        solve; ``"step"`` for a time step of the dynamics.
     displacement, voltage, force, capacitance, centre_deflection : ndarray, shape (k, n)
         Held commands [m], [V] and outputs [N], [F], [m] after each solve.
-    initial_force, initial_capacitance : ndarray, shape (n,)
+    force_command, position : ndarray, shape (k, n)
+        Held external force on biased indenters [N]; unit positions [m] (``unit_states``).
+    initial_force, initial_capacitance, initial_position : ndarray, shape (n,)
         The state at the zero command, current before the first accepted command.
     skipped : Counter
         Rejected commands per kind.
@@ -136,6 +141,9 @@ class ReplayRun:
     skipped: Counter = field(default_factory=Counter)
     state_warnings: Counter = field(default_factory=Counter)
     failures: list[str] = field(default_factory=list)
+    force_command: np.ndarray | None = None
+    position: np.ndarray | None = None
+    initial_position: np.ndarray | None = None
 
     @property
     def n_solves(self) -> int:
@@ -149,7 +157,8 @@ _FLAG_TEXT = {"unstable": "equilibrium not a stable minimum", "wrinkled": "compr
 
 
 def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tuple[int, str, Sequence[float]]],
-                    total: int | None = None, time_origin_ns: int = 0) -> ReplayRun:
+                    total: int | None = None, time_origin_ns: int = 0,
+                    ticks_ns: Sequence[int] | None = None, dt: float = 0.0) -> ReplayRun:
     """Run the twin on commands in order, sample and hold: one solve per accepted command.
 
     Parameters
@@ -157,14 +166,20 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
     twin : ArrayTwin
         The twin (reset first).
     modes
-        ``"driven"``/``"free"`` per unit.
+        ``"driven"``/``"free"``/``"biased"`` per unit.
     commands
-        ``(log_time_ns, kind, values)`` with kind ``"displacement"`` [m] or ``"voltage"`` [V],
-        in log-time order.
+        ``(log_time_ns, kind, values)`` with kind ``"displacement"`` [m], ``"voltage"`` [V]
+        or ``"force"`` [N], in log-time order.
     total
         Number of commands, for the progress bar.
     time_origin_ns
         Log time shown as t = 0 in messages.
+    ticks_ns, dt
+        A run of the dynamics (biased units with mass): the recording node's ticks [ns]
+        (its ``unit_states`` stamps, the first its quasi-static rest state) and its update
+        period [s].  Then each tick after the first is one time step of ``dt`` (times the
+        periods since the last tick), with the commands logged before the tick, as the
+        node took them; rows are steps, not commands.
 
     Returns
     -------
@@ -173,45 +188,77 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
     """
     from tqdm import tqdm
 
-
     n = twin.n_units
     twin.reset()
-    held = {kind: np.zeros(n) for kind in COMMANDS}
-    first = twin.solve(held["displacement"], held["voltage"], modes, check_stability=False)
-    rows: dict[str, list] = {k: [] for k in ("t", "kind", "d", "v", "f", "c", "z")}
+    held = {kind: np.zeros(n) for kind in (*COMMANDS, "force")}
+    first = twin.solve(held["displacement"], held["voltage"], modes, check_stability=False, force=held["force"])
+    rows: dict[str, list] = {k: [] for k in ("t", "kind", "d", "v", "u", "f", "c", "z", "p")}
     skipped: Counter = Counter()
     state_warnings: Counter = Counter()
     failures: list[str] = []
+
+    def record(when: int, kind: str, res) -> None:
+        state_warnings.update(_FLAG_TEXT[flag] for flag in res.flags)
+        rows["t"].append(int(when))
+        rows["kind"].append(kind)
+        rows["d"].append(held["displacement"].copy())
+        rows["v"].append(held["voltage"].copy())
+        rows["u"].append(held["force"].copy())
+        rows["f"].append(np.asarray(res.force, dtype=float))
+        rows["c"].append(np.asarray(res.capacitance, dtype=float))
+        rows["z"].append(np.asarray(res.centre_deflection, dtype=float))
+        rows["p"].append(np.asarray(res.position, dtype=float))
+
+    def update(kind: str, values: list, when: int) -> None:
+        """Hold an accepted command (and, quasi-statically, solve)."""
+        t_s = (when - time_origin_ns) * 1e-9
+        problem = command_error(kind, values, twin.config)
+        if problem:
+            skipped[kind] += 1
+            if sum(skipped.values()) <= _MAX_LISTED_WARNINGS:
+                bar.write(f"dea-twin replay: warning: skipping {kind} command at t = {t_s:.6f} s: {problem}",
+                          file=sys.stderr)
+            return
+        held[kind] = np.asarray(values, dtype=float)
+        if ticks_ns is None:
+            solve(kind, when, f"{kind} command {values}")
+
+    def solve(kind: str, when: int, what: str, steps: int = 0) -> None:
+        try:
+            if steps:
+                res = twin.step(dt * steps, held["displacement"], held["voltage"], held["force"], modes,
+                                check_stability=False)
+            else:
+                res = twin.solve(held["displacement"], held["voltage"], modes, check_stability=False,
+                                 force=held["force"])
+        except (ConvergenceError, ValueError) as exc:  # the node keeps its last state and goes on
+            failures.append(f"t = {(when - time_origin_ns) * 1e-9:.6f} s ({what}): {exc}")
+            if len(failures) <= _MAX_LISTED_WARNINGS:
+                bar.write(f"dea-twin replay: warning: solve failed, keeping the last state: {failures[-1]}",
+                          file=sys.stderr)
+            return
+        record(when, kind, res)
+
     bar = tqdm(total=total, desc="replay", unit="cmd", file=sys.stderr, disable=None)
     try:
-        for log_time, kind, values in commands:
-            bar.update(1)
-            values = list(values)
-            t_s = (log_time - time_origin_ns) * 1e-9
-            problem = command_error(kind, values, twin.config)
-            if problem:
-                skipped[kind] += 1
-                if sum(skipped.values()) <= _MAX_LISTED_WARNINGS:
-                    bar.write(f"dea-twin replay: warning: skipping {kind} command at t = {t_s:.6f} s: {problem}",
-                              file=sys.stderr)
-                continue
-            held[kind] = np.asarray(values, dtype=float)
-            try:
-                res = twin.solve(held["displacement"], held["voltage"], modes, check_stability=False)
-            except (ConvergenceError, ValueError) as exc:  # the node keeps its last state and goes on
-                failures.append(f"t = {t_s:.6f} s ({kind} command {values}): {exc}")
-                if len(failures) <= _MAX_LISTED_WARNINGS:
-                    bar.write(f"dea-twin replay: warning: solve failed, keeping the last state: {failures[-1]}",
-                              file=sys.stderr)
-                continue
-            state_warnings.update(_FLAG_TEXT[flag] for flag in res.flags)
-            rows["t"].append(int(log_time))
-            rows["kind"].append(kind)
-            rows["d"].append(held["displacement"].copy())
-            rows["v"].append(held["voltage"].copy())
-            rows["f"].append(np.asarray(res.force, dtype=float))
-            rows["c"].append(np.asarray(res.capacitance, dtype=float))
-            rows["z"].append(np.asarray(res.centre_deflection, dtype=float))
+        if ticks_ns is None:
+            for log_time, kind, values in commands:
+                bar.update(1)
+                update(kind, list(values), log_time)
+        else:
+            stream = iter(commands)
+            pending = next(stream, None)
+            ticks = list(ticks_ns)
+            for i, tick in enumerate(ticks):
+                if i == 0:  # the node's first update: the quasi-static rest state at the zero command
+                    solve("step", tick, "the rest state")
+                    continue
+                while pending is not None and pending[0] < tick:
+                    bar.update(1)
+                    update(pending[1], list(pending[2]), pending[0])
+                    pending = next(stream, None)
+                periods = max(1, int(round((tick - ticks[i - 1]) * 1e-9 / dt)))
+                solve("step", tick, f"the step to tick {i}", periods)
     finally:
         bar.close()
 
@@ -220,8 +267,10 @@ def replay_commands(twin: ArrayTwin, modes: Sequence[str], commands: Iterable[tu
 
     return ReplayRun(times_ns=np.array(rows["t"], dtype=np.int64), kinds=rows["kind"], displacement=stack("d"),
                      voltage=stack("v"), force=stack("f"), capacitance=stack("c"), centre_deflection=stack("z"),
+                     force_command=stack("u"), position=stack("p"),
                      initial_force=np.asarray(first.force, dtype=float),
                      initial_capacitance=np.asarray(first.capacitance, dtype=float),
+                     initial_position=np.asarray(first.position, dtype=float),
                      skipped=skipped, state_warnings=state_warnings, failures=failures)
 
 
@@ -311,16 +360,20 @@ def write_mcap(path: Path, run: ReplayRun, metadata: dict[str, dict[str, str]]) 
     n = run.force.shape[1]
     names = [f"unit_{k + 1}" for k in range(n)]
     with Ros2McapWriter(path, metadata=metadata, flush_period=None, overwrite=True) as rec:
-        ids = {kind: rec.add_topic(f"/command/{kind}", FLOAT_ARRAY) for kind in COMMANDS}
+        commands = {"displacement": run.displacement, "voltage": run.voltage, "force": run.force_command}
+        ids = {f"command/{kind}": rec.add_topic(f"/command/{kind}", FLOAT_ARRAY) for kind in commands}
         ids.update({kind: rec.add_topic(f"/{kind}", FLOAT_ARRAY) for kind in OUTPUTS})
         ids["unit_states"] = rec.add_topic("/unit_states", JOINT_STATE)
         for i, t in enumerate(run.times_ns.tolist()):
             kind = run.kinds[i]
-            held = run.displacement[i] if kind == "displacement" else run.voltage[i]
-            rec.write(ids[kind], serialize_message(unit_array(held)), t)
+            # the command that triggered the solve; for a time step, every command that changed
+            changed = [kind] if kind in commands else [
+                k for k, held in commands.items() if not np.array_equal(held[i], held[i - 1] if i else 0 * held[i])]
+            for k in changed:
+                rec.write(ids[f"command/{k}"], serialize_message(unit_array(commands[k][i])), t)
             rec.write(ids["force"], serialize_message(unit_array(run.force[i])), t)
             rec.write(ids["capacitance"], serialize_message(unit_array(run.capacitance[i])), t)
-            states = JointState(name=names, position=[float(v) for v in run.centre_deflection[i]],
+            states = JointState(name=names, position=[float(v) for v in run.position[i]],
                                 velocity=[0.0] * n, effort=[float(v) for v in run.force[i]])
             states.header.stamp.sec, states.header.stamp.nanosec = divmod(t, 1_000_000_000)
             states.header.frame_id = "dea_array"
@@ -354,12 +407,7 @@ def default_fit_lag(bag: Bag) -> tuple[float, str]:
     report (``solve_time_max_ms``, the longest of each 10 s); 0 for a bag without the
     twin's metadata (the outputs answer each command at once, as a replay's do).
     """
-    recorded_rate = (bag.metadata(CONFIG_RECORD) or {}).get("update_rate", "0")
-    try:
-        rate = float(recorded_rate)
-    except ValueError:
-        _log(f"warning: recorded update_rate {recorded_rate!r} is not a number; pass --fit-lag")
-        rate = 0.0
+    rate = _recorded_rate(bag)
     if not rate > 0:
         return 0.0, "no update rate recorded: outputs answer each command at once"
     longest = 0.0
@@ -380,9 +428,12 @@ def default_fit_lag(bag: Bag) -> tuple[float, str]:
     return 3.0 / rate, "three update periods of the recording node"
 
 
-def _fit_table(fits: dict[str, np.ndarray], topics: dict[str, str], counts: dict[str, int]) -> str:
-    kinds = [k for k in OUTPUTS if k in fits]
-    n = len(next(iter(fits.values())))
+def _fit_table(fits: dict[str, np.ndarray], topics: dict[str, str], counts: dict[str, int],
+               kinds: Sequence[str] = OUTPUTS) -> str:
+    kinds = [k for k in kinds if k in fits]
+    if not kinds:
+        return ""
+    n = len(fits[kinds[0]])
     head = ", ".join(f"{topics[k]} ({counts[k]} msgs)" for k in kinds)
     lines = [f"FIT [%] (paper eq. 12) of the replay against the recorded {head}:",
              "  unit" + "".join(f"  {k + ' [%]':>16}" for k in kinds)]
@@ -392,6 +443,55 @@ def _fit_table(fits: dict[str, np.ndarray], topics: dict[str, str], counts: dict
     if any(np.isnan(fits[k]).any() for k in kinds):
         lines.append("  n/a: the recorded signal is constant (e.g. a free unit's zero force): FIT undefined")
     return "\n".join(lines)
+
+
+def _recorded_rate(bag: Bag) -> float:
+    """The recording node's ``update_rate`` [Hz] from the bag's metadata (0 if absent or not a number)."""
+    recorded_rate = (bag.metadata(CONFIG_RECORD) or {}).get("update_rate", "0")
+    try:
+        return float(recorded_rate)
+    except ValueError:
+        _log(f"warning: recorded update_rate {recorded_rate!r} is not a number; pass --fit-lag")
+        return 0.0
+
+
+def _unit_states(bag: Bag, commands: dict[str, str], n: int) -> tuple | None:
+    """``(stamps_ns, log_times_ns, positions (m, n), topic)`` of the recorded ``unit_states``, or None.
+
+    The topic ends with ``unit_states`` in the commands' namespace (or anywhere, if only one)."""
+    candidates = [t for t, kind in bag.topics.items() if t.endswith("unit_states") and kind == JOINT_STATE]
+    namespace = next((t[: -len(f"/command/{k}")] for k, t in commands.items() if t.endswith(f"/command/{k}")), "")
+    preferred = [t for t in candidates if t == f"{namespace}/unit_states"]
+    if len(preferred) == 1:
+        topic = preferred[0]
+    elif len(candidates) == 1:
+        topic = candidates[0]
+    else:
+        return None
+    stamps, logs, positions = [], [], []
+    for msg in bag.messages([topic], decode=True):
+        position = np.asarray(msg.decoded.position, dtype=float)
+        if position.shape != (n,) or not np.all(np.isfinite(position)):
+            continue
+        stamp = msg.decoded.header.stamp
+        stamps.append(stamp.sec * 1_000_000_000 + stamp.nanosec)
+        logs.append(msg.log_time_ns)
+        positions.append(position)
+    if not positions:
+        return None
+    return np.array(stamps, dtype=np.int64), np.array(logs, dtype=np.int64), np.array(positions), topic
+
+
+def _ticks(stamps: np.ndarray) -> np.ndarray:
+    """The distinct tick stamps in order (an abandoned step republishes the last one)."""
+    keep = np.concatenate([[True], np.diff(stamps) > 0]) if len(stamps) else np.zeros(0, dtype=bool)
+    return stamps[keep]
+
+
+def _tick_of(log_times: np.ndarray, states: tuple) -> np.ndarray:
+    """The tick stamp of the ``unit_states`` published with each output (the last logged at or before it)."""
+    index = np.clip(np.searchsorted(states[1], log_times, side="right") - 1, 0, len(states[0]) - 1)
+    return states[0][index]
 
 
 def _log(text: str) -> None:
@@ -407,6 +507,9 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
         raise BagError("--compare needs --rom (it compares the reduced model with the FE)")
     commands = command_topics(bag, topic_map)
     outputs = output_topics(bag, commands, topic_map)
+    force_topic = select_topic(bag.topics, "command/force", topic_map)
+    if force_topic is not None:
+        commands["force"] = force_topic
     cfg, modes, notes = resolve_config(bag, config_path, modes)
     for note in notes:
         _log(note)
@@ -437,8 +540,17 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
 
     total = sum(bag.counts.get(t, 0) for t in commands.values()) or None
     origin = bag.start_ns or 0
+    rate = _recorded_rate(bag)
+    states = _unit_states(bag, commands, n)
+    masses = cfg.per_unit("mass")
+    dynamic = (rate > 0 and states is not None and len(states[0]) > 1 and rom_path is None
+               and any(mode == BIASED and mass > 0 for mode, mass in zip(modes, masses)))
+    if dynamic:
+        _log(f"biased units with mass at {rate:g} Hz: re-simulating the dynamics, one step per recorded tick "
+             f"({len(states[0])} unit_states stamps), each command from the first tick after it")
     tic = time.perf_counter()
-    run = replay_commands(twin, modes, command_stream(), total=total, time_origin_ns=origin)
+    run = replay_commands(twin, modes, command_stream(), total=total, time_origin_ns=origin,
+                          ticks_ns=_ticks(states[0]) if dynamic else None, dt=1.0 / rate if dynamic else 0.0)
     elapsed = time.perf_counter() - tic
     if rom_path is not None:
         print(f"reduced model {rom_path}: {twin.updates} update(s) by the ROM, FE fallbacks "
@@ -464,18 +576,30 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
              "the twin kept its last state at each and went on, as the node does")
     data = {k: (np.array(t, dtype=np.int64), np.array(v, dtype=float).reshape(-1, n))
             for k, (t, v) in recorded.items() if t}
+    if states is not None:  # positions: the tick stamps of a dynamic run, else the log times
+        data["position"] = (np.asarray(states[0 if dynamic else 1], dtype=np.int64), states[2])
+        outputs = {**outputs, "position": states[3]}
     if data:
-        if fit_lag is None:
-            fit_lag, why = default_fit_lag(bag)
+        if dynamic:
+            fit_lag = 0.0
+            data = {k: (v if k == "position" else (_tick_of(v[0], states), v[1])) for k, v in data.items()}
+            _log("FIT pairs each recorded output with the replayed step of its tick")
         else:
-            why = "--fit-lag"
-        _log(f"FIT pairs each recorded output with a replayed state current up to {fit_lag * 1e3:.1f} ms before "
-             f"it ({why}; --fit-lag to change)")
+            if fit_lag is None:
+                fit_lag, why = default_fit_lag(bag)
+            else:
+                why = "--fit-lag"
+            _log(f"FIT pairs each recorded output with a replayed state current up to {fit_lag * 1e3:.1f} ms before "
+                 f"it ({why}; --fit-lag to change)")
         fits = compare_outputs(run, data, int(round(fit_lag * 1e9)))
-        print(_fit_table(fits, outputs, {k: len(v[0]) for k, v in data.items()}))
+        counts = {k: len(v[0]) for k, v in data.items()}
+        for kinds in (OUTPUTS, ("position",)):  # positions (unit_states) in a table of their own
+            table = _fit_table(fits, outputs, counts, kinds)
+            if table:
+                print(table)
     if compare:
         fe_run = replay_commands(ArrayTwin(cfg), modes, ((t, k, v) for t, k, v in command_stream()
-                                                         if k in ("displacement", "voltage")),
+                                                         if k in ("displacement", "voltage", "force")),
                                  total=total, time_origin_ns=origin)
         print(_comparison_table(compare_models(run, fe_run), min(run.n_solves, fe_run.n_solves)))
     return 1 if run.failures else 0

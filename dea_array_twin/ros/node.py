@@ -53,6 +53,7 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
+from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
@@ -161,7 +162,7 @@ class TwinNode(Node):
             for kind in COMMAND_KINDS}
         self.create_service(Trigger, "reset", self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
         if self.update_rate > 0:
-            self.create_timer(1.0 / self.update_rate, self.updater.tick)
+            self.create_timer(1.0 / self.update_rate, lambda: self.updater.tick(self.get_clock().now().nanoseconds))
         if self.marker_rate > 0:
             self.create_timer(1.0 / self.marker_rate, self._publish_marker)
         self.create_timer(1.0, self._publish_diagnostics)
@@ -337,9 +338,11 @@ class TwinNode(Node):
         return response
 
     # ---------------------------------------------------------------- publishing
-    def _publish_outputs(self, res: TwinResult) -> None:
-        """Force, capacitance and unit states of ``res`` (called on the solver thread)."""
-        stamp = self.get_clock().now().to_msg()
+    def _publish_outputs(self, res: TwinResult, stamp_ns: int | None = None) -> None:
+        """Force, capacitance and unit states of ``res`` (called on the solver thread).
+
+        ``unit_states`` is stamped ``stamp_ns`` (a dynamic step: its tick), else now."""
+        stamp = self.get_clock().now().to_msg() if stamp_ns is None else Time(nanoseconds=stamp_ns).to_msg()
         self.pub_force.publish(unit_array(res.force))
         self.pub_cap.publish(unit_array(res.capacitance))
         states = JointState()

@@ -2,7 +2,9 @@
 
 A :class:`TopicRecorder` subscribes (``raw=True``: the exact bytes that went over the
 wire) to the twin's command, output and diagnostics topics and writes them with a
-:class:`~dea_array_twin.bag.writer.Ros2McapWriter` (log time = receive time).  Nothing
+:class:`~dea_array_twin.bag.writer.Ros2McapWriter` (log time = receive time on the twin
+node's clock, simulated time under ``use_sim_time`` as rosbag2 records it, so a replay
+can place commands between the ticks of the node's dynamics).  Nothing
 it does waits for the twin, and the twin never waits for it:
 
 * its subscriptions belong to a small node of its own (``<twin name>_recorder``, same
@@ -112,6 +114,7 @@ class TopicRecorder:
         self._lost = 0
         self._refused = 0
         self._queue: deque[tuple[int, bytes, int]] = deque()
+        self._clock = node.get_clock()  # the twin's: ROS time (simulated under use_sim_time)
         self._stopping = threading.Event()  # stops the executor thread
         self._closing = threading.Event()  # the writer thread: write what is left, then end
         self.writer = _create_writer(Path(directory).expanduser(), node.get_fully_qualified_name(), metadata,
@@ -162,7 +165,7 @@ class TopicRecorder:
         if len(self._queue) >= BACKLOG_LIMIT:
             self._refused += 1
             return
-        self._queue.append((cid, data, time.time_ns()))
+        self._queue.append((cid, data, self._clock.now().nanoseconds))
 
     def _on_lost(self, info) -> None:
         self._lost += info.total_count_change

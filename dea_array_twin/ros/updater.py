@@ -32,8 +32,10 @@ keep the twin making progress:
 With ``dynamics_dt`` (biased units with a moving mass) every tick advances the twin's
 dynamics: one :meth:`~dea_array_twin.model.twin.ArrayTwin.step` of ``dynamics_dt`` times
 the ticks since the last step (1 unless the thread fell behind, which is counted as
-skipped ticks), with the commands in the mailbox, new or not, from the quasi-static
-equilibrium the first update after start or ``reset`` solves.  Otherwise an update is a
+skipped ticks), with the commands the mailbox held at the tick (taken in :meth:`tick`, so
+a command counts for the step of the first tick after it arrived), new or not, from the
+quasi-static equilibrium the first update after start or ``reset`` solves; the result
+is published with the tick's time stamp.  Otherwise an update is a
 quasi-static solve, made only when a command changed.
 
 Counters, rates and solve-time percentiles for the node's diagnostics come from
@@ -78,6 +80,8 @@ class CommandSnapshot:
         Increases with every change of the mailbox.
     ticks : int
         Update periods this update covers (a dynamic step advances by that many ``dt``).
+    stamp_ns : int or None
+        Clock time of the tick a dynamic step ends at [ns].
     """
 
     commands: Mapping[str, np.ndarray]
@@ -85,6 +89,7 @@ class CommandSnapshot:
     config: ArrayConfig
     seq: int
     ticks: int = 1
+    stamp_ns: int | None = None
 
 
 @dataclass
@@ -143,6 +148,8 @@ class TwinUpdater:
                  stability_period: float, event_driven: bool = False, dynamics_dt: float | None = None):
         self.twin = twin
         self.dynamics_dt = dynamics_dt
+        self._tick: tuple | None = None  # (commands, stamp) at the last tick, for dynamics
+        self._result_stamp: int | None = None  # tick stamp of the last good dynamic step
         self._publish, self._log = publish, log
         self.budget, self.stability_period, self.event_driven = budget, stability_period, event_driven
         self._cond = threading.Condition()
@@ -191,10 +198,12 @@ class TwinUpdater:
             self._config = config
             self._changed()
 
-    def tick(self) -> None:
-        """One update period has passed."""
+    def tick(self, stamp_ns: int | None = None) -> None:
+        """One update period has passed (at clock time ``stamp_ns``, for dynamics)."""
         with self._cond:
             self._ticks += 1
+            if self.dynamics_dt is not None:
+                self._tick = ({k: v.copy() for k, v in self._commands.items()}, stamp_ns)
             self._cond.notify()
 
     def reset(self, done: Callable[[bool, str], None]) -> None:
@@ -259,7 +268,11 @@ class TwinUpdater:
                         self._stats.skipped_ticks += self._ticks - 1
                     ticks, self._ticks = self._ticks, 0
                     snapshot = None
-                    if self._seq != self._solved_seq or (self.dynamics_dt is not None and ticks and not resets):
+                    if self.dynamics_dt is not None and ticks and not resets and self._tick is not None:
+                        commands, stamp = self._tick  # what the mailbox held at the tick
+                        snapshot = CommandSnapshot(commands, self._modes, self._config, self._seq, ticks, stamp)
+                        self._solved_seq = self._seq
+                    elif self._seq != self._solved_seq:
                         snapshot = CommandSnapshot({k: v.copy() for k, v in self._commands.items()}, self._modes,
                                                    self._config, self._seq, max(ticks, 1))
                         self._solved_seq = self._seq
@@ -272,7 +285,10 @@ class TwinUpdater:
                     error = self._stats.last_error
                     done(not error, "twin reset to 0 m, 0 V" if not error else error)
                 if self.result is not None and not self._stopping:
-                    self._publish(self.result)
+                    if self._result_stamp is None:
+                        self._publish(self.result)
+                    else:  # a dynamic step: the state at its tick
+                        self._publish(self.result, self._result_stamp)
                     with self._cond:
                         self._stats.outputs += 1
                         self._output_times.append(time.monotonic())
@@ -317,11 +333,14 @@ class TwinUpdater:
         self._abandoned_in_a_row = 0
         if check:
             self._last_stability = start
-        lifted_before = self.result.lifted_off if self.result is not None else np.zeros_like(result.lifted_off)
+        # Snap-throughs and new lift-offs, for diagnostics (a result without them counts none).
+        lifted = np.asarray(getattr(result, "lifted_off", ()), dtype=bool)
+        before = np.asarray(getattr(self.result, "lifted_off", np.zeros_like(lifted)), dtype=bool)
         self.result = result
+        self._result_stamp = snapshot.stamp_ns
         with self._cond:
-            self._stats.snaps += len(result.snaps)
-            self._stats.lift_offs += int(np.count_nonzero(result.lifted_off & ~lifted_before))
+            self._stats.snaps += len(getattr(result, "snaps", ()))
+            self._stats.lift_offs += int(np.count_nonzero(lifted & ~before)) if before.shape == lifted.shape else 0
             self._stats.updates += 1
             self._stats.last_error = ""
             self._solve_times.append((now, now - start))
