@@ -236,19 +236,23 @@ def run_loop(twin: ArrayTwin, loop: StrokeLoop, targets, duration: float, dt: fl
     return LoopRun(np.array(rows["t"]), *(np.array(rows[k]) for k in keys))
 
 
-def wave_targets(t: float, rest: np.ndarray, amplitude: float, period: float) -> np.ndarray:
-    """A travelling wave of strokes: unit k at ``rest_k + amplitude (1 - cos(2 pi (t/period - k/n))) / 2`` [m]."""
+def wave_targets(t: float, rest: np.ndarray, amplitude: float, period: float, offset: float = 0.0) -> np.ndarray:
+    """A travelling wave of strokes: unit k at ``rest_k + offset + amplitude (1 - cos(2 pi (t/period - k/n))) / 2`` [m].
+
+    An ``offset`` keeps every set-point above where the neighbours alone lift a unit: a
+    voltage only pushes, so a unit cannot be held below that."""
     n = rest.size
     phase = 2.0 * np.pi * (t / period - np.arange(n) / n)
-    return rest + 0.5 * amplitude * (1.0 - np.cos(phase))
+    return rest + offset + 0.5 * amplitude * (1.0 - np.cos(phase))
 
 
 class StrokeController(Node):
     """ROS 2 node: a stroke wave held by voltage, sensed by capacitance only.
 
     Parameters (ROS): ``config_file`` (the twin's config YAML; required), ``rate`` [Hz],
-    ``amplitude`` [m] and ``period`` [s] of the wave, ``gain`` [V^2/(m s)], ``v_max`` [V],
-    ``compensate_coupling`` (bool), ``start`` [m] (release height of the rest state).
+    ``amplitude``, ``offset`` [m] and ``period`` [s] of the wave (:func:`wave_targets`),
+    ``gain`` [V^2/(m s)], ``v_max`` [V], ``compensate_coupling`` (bool), ``start`` [m]
+    (release height of the rest state).
     """
 
     def __init__(self, **kwargs):
@@ -256,8 +260,9 @@ class StrokeController(Node):
         path = self.declare_parameter("config_file", "", ParameterDescriptor(
             description="the twin's config YAML (biased units)", read_only=True)).value
         self.rate = declare_number(self, "rate", 20.0, "control rate [Hz]", minimum=1e-3)
-        amplitude = declare_number(self, "amplitude", 0.002, "stroke amplitude of the wave [m]")
-        self.period = declare_number(self, "period", 4.0, "period of the wave [s]", minimum=1e-3)
+        amplitude = declare_number(self, "amplitude", 0.0016, "stroke amplitude of the wave [m]")
+        self.offset = declare_number(self, "offset", 0.0008, "stroke the wave starts from [m]")
+        self.period = declare_number(self, "period", 8.0, "period of the wave [s]", minimum=1e-3)
         gain = declare_number(self, "gain", 2e9, "integral gain on V^2 [V^2/(m s)]")
         v_max = declare_number(self, "v_max", 2730.0, "largest voltage commanded [V]", minimum=1.0)
         start = self.declare_parameter("start", 0.0, ParameterDescriptor(
@@ -265,8 +270,8 @@ class StrokeController(Node):
         compensate = self.declare_parameter("compensate_coupling", True, ParameterDescriptor(
             description="estimate positions with the coupling between units", read_only=True)).value
         config = load_config(path or None)
-        offsets = np.linspace(-0.5 * amplitude, 1.5 * amplitude, 9)
-        self.model = build_sensing_model(config, v_max, offsets, start=float(start))
+        offsets = np.linspace(-0.5, 1.5, 17) * (amplitude + self.offset)
+        self.model = build_sensing_model(config, v_max, offsets, levels=11, start=float(start))
         self.loop = StrokeLoop(self.model, bool(compensate), gain, v_max)
         self.amplitude = amplitude
         self.capacitance: np.ndarray | None = None
@@ -284,6 +289,6 @@ class StrokeController(Node):
             return
         now = self.get_clock().now().nanoseconds * 1e-9
         self.started = now if self.started is None else self.started
-        target = wave_targets(now - self.started, self.model.rest, self.amplitude, self.period)
+        target = wave_targets(now - self.started, self.model.rest, self.amplitude, self.period, self.offset)
         self.targets.append(target)
         self.pub.publish(unit_array(self.loop.update(1.0 / self.rate, target, self.capacitance)))

@@ -63,7 +63,8 @@ def test_stroke_controller_node_drives_a_wave_on_the_twin_by_voltage_from_capaci
     with TwinHarness(parameters={"config_file": str(config), "update_rate": 50.0, "marker_rate": 0.0}) as h:
         controller = StrokeController(context=h.context, parameter_overrides=[
             Parameter("config_file", value=str(config)), Parameter("rate", value=20.0),
-            Parameter("amplitude", value=AMPLITUDE), Parameter("period", value=4.0), Parameter("gain", value=1e10),
+            Parameter("amplitude", value=AMPLITUDE), Parameter("offset", value=0.0), Parameter("period", value=4.0),
+            Parameter("gain", value=1e10),
             Parameter("start", value=START), Parameter("compensate_coupling", value=True)])
         h.executor.add_node(controller)
         try:
