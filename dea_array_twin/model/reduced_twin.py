@@ -462,6 +462,7 @@ class ReducedTwin:
             energy=float(info[0]), min_principal_stress=sigma_min, wrinkled=sigma_min < 0,
             field_exceeded=bool(peak.max() > self._breakdown), stable=stable, iterations=evals,
             factorisations=refreshes, step_cuts=0, residual=float(info[3]), solve_time=time.perf_counter() - tic,
+            velocity=self._zeros, bias_force=self._zeros, external_force=self._zeros, lifted_off=self._none, snaps=(),
             error_indicator=float(info[2]), recover=functools.partial(_recover, self._reference, self._vectors, z[1:]))
 
     def _fallback(self, kind: str, reason: str, d1: np.ndarray, v1: np.ndarray, modes: tuple,
