@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap_ros2.reader import read_ros2_messages
 from rosbags.highlevel import AnyReader
@@ -76,7 +77,7 @@ def test_recording_survives_sigkill_up_to_the_last_flush(tmp_path):
         h.process.send_signal(signal.SIGKILL)
         h.process.wait(timeout=10)
     path = _only_file(tmp_path)
-    with pytest.raises(Exception):
+    with pytest.raises(McapError):
         list(read_ros2_messages(str(path)))  # no summary: the plain reader refuses
     fixed = tmp_path / "recovered.mcap"
     assert main(["bag-recover", str(path), str(fixed)]) == 0

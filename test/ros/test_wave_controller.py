@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 
+from dea_array_twin import ArrayTwin
 from dea_array_twin.ros.wave_controller import Wave, WaveController, WaveSettings
 
 A = 0.006  # amplitude [m]
@@ -146,7 +147,11 @@ def test_wave_controller_deflects_twin_units_one_after_another_by_capacitance_tr
                 time.sleep(0.05)
             assert h.spin_error is None, h.spin_error
             assert [u for u, _, _ in reached] == [0, 1, 2], f"units reached 0.9 A: {reached}"
+            twin = ArrayTwin()
             for unit, msg, _ in reached:
+                # the force the twin reports is the membrane's at the positions it reports
+                ref = twin.solve(list(msg.position), 0.0, ("driven",) * 3)
+                np.testing.assert_allclose(msg.effort, ref.force, rtol=1e-5, atol=1e-8)
                 assert msg.effort[unit] > 0.0, f"unit {unit + 1} deflected without restoring force: {msg}"
                 others = [msg.position[j] for j in range(3) if j != unit]
                 assert max(others) < 0.5 * A  # a wave, not all units up at once
