@@ -88,3 +88,30 @@ def test_free_dofs_that_are_not_whole_nodes_are_factored_by_superlu():
     x = factoriser.factor(values).solve(b)
     k = model.pattern.block(values, partial, partial)
     assert np.abs(k @ x - b).max() <= 1e-10
+
+
+def test_a_zero_pivot_falls_back_to_superlu_which_solves_and_reports_the_inertia_unknown():
+    """K = [[0, I], [I, 0]] (two nodes, eigenvalues +-1): the block LDL^T meets a zero 3x3 pivot
+    and hands over to SuperLU, which has to pivot off the diagonal; its U then says nothing
+    about the inertia, so the count is -1 (unknown), never a guess, and the solve is exact."""
+    from dea_array_twin.model.assembly import SparsePattern
+
+    pattern = SparsePattern(np.arange(6)[None, :], 6)
+    k = np.block([[np.zeros((3, 3)), np.eye(3)], [np.eye(3), np.zeros((3, 3))]])
+    factor = Factoriser(pattern, np.arange(6), "block").factor(pattern.values(k[None]))
+    assert factor.negative_pivots() == -1
+    b = np.arange(1.0, 7.0)
+    assert np.abs(k @ factor.solve(b) - b).max() <= 1e-12
+
+
+def test_a_checked_solve_whose_inertia_is_unknown_reports_stability_unknown(monkeypatch):
+    """``stable`` is None (not True, not False) when the factorisation cannot count the
+    negative eigenvalues; the force is the same as with the count known."""
+    import dea_array_twin.model.solver as solver
+
+    known = ArrayTwin(ArrayConfig(**COARSE)).solve([0, 0.004, 0], [0, 0, 0], FREE_CENTRE, check_stability=True)
+    monkeypatch.setattr(solver, "negative_eigenvalues", lambda *args, **kwargs: -1)
+    unknown = ArrayTwin(ArrayConfig(**COARSE)).solve([0, 0.004, 0], [0, 0, 0], FREE_CENTRE, check_stability=True)
+    assert known.stable is True and unknown.stable is None
+    assert "unstable" not in unknown.flags
+    assert unknown.force[1] == pytest.approx(known.force[1], rel=1e-9)
