@@ -73,7 +73,8 @@ def spin_node(make_node: Callable[[], Node], name: str, args: Sequence[str] | No
 
     An invalid parameter (``ValueError``, including ``ConfigError``, or an rclpy
     ``ParameterException``) is logged as FATAL under ``name`` and exits with code 2, as
-    does an invalid params file.
+    does an invalid params file.  A signal that arrives while the node is being built
+    ends the start as quietly as one during the spin.
     """
     node = None
     with shutdown_signals() as install_again:
@@ -88,6 +89,12 @@ def spin_node(make_node: Callable[[], Node], name: str, args: Sequence[str] | No
             rclpy.spin(node)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception:
+            # rclpy's own SIGINT/SIGTERM handler shuts the context down; if the signal lands
+            # while the node is still being built or before the executor exists, the next rcl
+            # call raises (RCLError: context not valid).  That is a normal stop, not a crash.
+            if rclpy.ok():
+                raise
         finally:
             if node is not None:
                 node.destroy_node()
