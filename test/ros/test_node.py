@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import COARSE
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
@@ -285,3 +286,15 @@ def test_namespaced_twin_publishes_the_deformed_membrane_marker():
         assert len(marker.points) == 3 * n_elements == len(marker.colors)
         assert max(p.z for p in marker.points) == pytest.approx(0.008)
         assert marker.type == marker.TRIANGLE_LIST and marker.header.frame_id == "dea_array"
+
+
+def test_the_executor_waits_only_on_the_event_handlers_the_twin_uses():
+    """rclpy's default QoS event handlers (two per publisher and subscription, walked in Python at
+    every wake-up of the executor) are left out: the command subscriptions keep their publisher-matched
+    handler (it publishes diagnostics), the outputs have none."""
+    with TwinHarness(parameters={"update_rate": 20.0, "marker_rate": 0.0, **COARSE}) as h:
+        node = h.twin_node
+        outputs = {p.topic_name: len(p.event_handlers) for p in node.publishers if p.topic_name != "/parameter_events"}
+        commands = {s.topic_name: len(s.event_handlers) for s in node.subscriptions}
+    assert outputs == {"/force": 0, "/capacitance": 0, "/unit_states": 0, "/membrane": 0, "/diagnostics": 0}
+    assert commands == {"/command/displacement": 1, "/command/voltage": 1}
