@@ -21,6 +21,10 @@ The executor only moves messages: callbacks check a command
 :class:`~dea_array_twin.model.twin.ArrayTwin`, solves on the latest command, gives
 each solve a time budget (``solve_budget``) and publishes when a solve finishes.  So
 commands, ``reset``, parameters, diagnostics and the recorder never wait for a solve.
+The update clock is the solver thread's own (every ``1/update_rate`` s of the steady
+clock, not a ROS timer), and the FE twin refreshes stale tangents in a worker thread
+(``ArrayTwin(background_tangent=True)``): at 500 Hz neither a timer callback per tick
+in the executor nor a factorisation in an update (5-10 ms) fits the 2 ms period.
 
 With ``model: rom`` the solver thread runs a
 :class:`~dea_array_twin.model.reduced_twin.ReducedTwin` from ``rom_file`` (a ROM
@@ -39,6 +43,7 @@ quasi-static solve.
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
@@ -49,7 +54,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -81,6 +86,12 @@ from .updater import TwinUpdater
 COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 COMMAND_KINDS = ("displacement", "voltage", "force")
+#: No QoS event handlers but the ones the node uses.  rclpy's default ones (a warning on an
+#: incompatible QoS or type, which the other side's publisher or subscription also logs)
+#: are two waitables per publisher and subscription that the executor walks through in
+#: Python at every wake-up: with those 14 and a 500 Hz update timer its thread took 0.3-0.4
+#: of a core at 500 commands a second, without them 0.15-0.2 (benchmarks/bench_core.py --node).
+NO_DEFAULT_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
 
 
 def unit_array(values: Sequence[float]) -> Float64MultiArray:
@@ -129,21 +140,25 @@ class TwinNode(Node):
         self.recording_error = ""
         self._duplicate = ""
 
-        self.pub_force = self.create_publisher(Float64MultiArray, "force", OUTPUT_QOS)
-        self.pub_cap = self.create_publisher(Float64MultiArray, "capacitance", OUTPUT_QOS)
-        self.pub_states = self.create_publisher(JointState, "unit_states", OUTPUT_QOS)
-        self.pub_marker = self.create_publisher(Marker, "membrane", OUTPUT_QOS)
-        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", OUTPUT_QOS)
+        publisher = functools.partial(self.create_publisher, qos_profile=OUTPUT_QOS, event_callbacks=NO_DEFAULT_EVENTS)
+        self.pub_force = publisher(Float64MultiArray, "force")
+        self.pub_cap = publisher(Float64MultiArray, "capacitance")
+        self.pub_states = publisher(JointState, "unit_states")
+        self.pub_marker = publisher(Marker, "membrane")
+        self.pub_diag = publisher(DiagnosticArray, "/diagnostics")
         masses = cfg.per_unit("mass")
         #: Time step of the dynamics [s] (biased units with mass, a timer, the FE model), else None: quasi-static.
         self.dynamics_dt = (1.0 / self.update_rate if self.update_rate > 0 and not isinstance(twin, ReducedTwin)
                             and any(m > 0 for m, mode in zip(masses, cfg.modes) if mode == BIASED) else None)
         self.updater = TwinUpdater(twin, {kind: np.zeros(n) for kind in COMMAND_KINDS}, self.modes,
                                    self._publish_outputs, self._warn, self.solve_budget, stability_period,
-                                   event_driven=self.update_rate == 0, dynamics_dt=self.dynamics_dt)
+                                   period=1.0 / self.update_rate if self.update_rate > 0 else 0.0,
+                                   dynamics_dt=self.dynamics_dt)
         check_rate = declare_number(self, "fe_check_rate", 1.0,
                                     "model rom: FE re-solves of the latest command per second, in a background "
                                     "thread (difference in /diagnostics, resync above the ROM's tolerance); 0 = off")
+        #: The twin (its ``close`` runs at the end; the solver thread owns its state).
+        self._twin = twin
         #: The reduced twin (model: rom) and its FE check, else None.
         self.rom_twin = twin if isinstance(twin, ReducedTwin) else None
         if self.rom_twin is not None and self.update_rate > 0:
@@ -158,10 +173,11 @@ class TwinNode(Node):
         self._command_subs = {
             kind: self.create_subscription(
                 Float64MultiArray, f"command/{kind}", lambda m, kind=kind: self._on_command(kind, m), COMMAND_QOS,
-                event_callbacks=SubscriptionEventCallbacks(matched=lambda _: self._publish_diagnostics()))
+                event_callbacks=SubscriptionEventCallbacks(matched=lambda _: self._publish_diagnostics(),
+                                                           use_default_callbacks=False))
             for kind in COMMAND_KINDS}
         self.create_service(Trigger, "reset", self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
-        if self.update_rate > 0:
+        if self.dynamics_dt is not None:  # dynamics step on the node's clock (use_sim_time honoured)
             self.create_timer(1.0 / self.update_rate, lambda: self.updater.tick(self.get_clock().now().nanoseconds))
         if self.marker_rate > 0:
             self.create_timer(1.0 / self.marker_rate, self._publish_marker)
@@ -211,8 +227,8 @@ class TwinNode(Node):
                         "the FE answering outside its envelope", read_only=True)).value
         rom_file = self.declare_parameter("rom_file", "", ParameterDescriptor(
             description="ROM file (.npz) for model: rom", read_only=True)).value
-        if model == "fe":
-            return ArrayTwin(cfg)
+        if model == "fe":  # the tangents of warm updates refreshed off the solver thread
+            return ArrayTwin(cfg, background_tangent=True)
         if model != "rom":
             raise ConfigError(f"model: must be 'fe' or 'rom', got {model!r}")
         if not rom_file:
@@ -293,8 +309,7 @@ class TwinNode(Node):
         self.updater.stop()
         if self.fe_check is not None:
             self.fe_check.stop()
-        if self.rom_twin is not None:
-            self.rom_twin.close()
+        self._twin.close()
         if self.recorder is not None:
             self.recorder.close()
             self.recorder = None
@@ -415,7 +430,10 @@ class TwinNode(Node):
         else:
             values["recording"] = self.recording_error or "off"
         values["model"] = "fe"
-        if self.rom_twin is not None:
+        if self.rom_twin is None:
+            values.update({f"background_tangents_{kind}": self._twin.tangents[kind]
+                           for kind in ("installed", "dropped", "failed")})
+        else:
             rom_problem = self._rom_diagnostics(values, res)
             if rom_problem and status.level == DiagnosticStatus.OK:
                 status.level, status.message = DiagnosticStatus.WARN, rom_problem

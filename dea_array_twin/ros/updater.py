@@ -7,8 +7,12 @@ The node's executor only moves messages.  Its callbacks hand work to a
   hold: a newer command of a kind replaces the older one, solved or not);
   :meth:`~TwinUpdater.set_modes` and :meth:`~TwinUpdater.set_config` change what the
   next update uses;
-* :meth:`~TwinUpdater.tick` (the node's update timer) asks for one update; with
-  ``event_driven`` every change of the mailbox does;
+* the thread keeps its own clock: with a ``period`` it updates once per period on the
+  steady clock (a timer of its own, not a ROS timer: at 500 Hz the executor's Python
+  per timer callback, ~0.15 ms, was a tenth of a core taken from the solves, and the
+  GIL it held delayed them); with ``period`` 0 every change of the mailbox asks for
+  an update; the dynamics (``dynamics_dt``) step on the node's clock instead, one
+  :meth:`~TwinUpdater.tick` per period (``use_sim_time`` honoured);
 * :meth:`~TwinUpdater.reset` pre-empts: a running solve is abandoned at its next Newton
   iteration, the twin returns to the flat state at 0 m, 0 V and the callback is told.
 
@@ -137,27 +141,31 @@ class TwinUpdater:
         Seconds a solve may take before it is abandoned for a newer command; 0 = no budget.
     stability_period : float
         Seconds between stability checks of the equilibrium (0 = every update).
-    event_driven : bool
-        Update on every change of the mailbox instead of on :meth:`tick`.
+    period : float
+        Seconds between updates on the steady clock (``1 / update_rate``); 0 = update on
+        every change of the mailbox.  A period that passes while a solve runs is counted
+        in ``skipped_ticks``; the schedule keeps its phase (as a ROS timer does).
     dynamics_dt : float, optional
-        Time step [s] of the dynamics advanced at every tick; None: quasi-static updates.
+        Time step [s] of the dynamics, advanced at every :meth:`tick` (which then paces
+        the updates instead of ``period``); None: quasi-static updates.
     """
 
     def __init__(self, twin: ArrayTwin, commands: Mapping[str, Sequence[float]], modes: Sequence[str],
                  publish: Callable[[TwinResult], None], log: Callable[[str, str], None], budget: float,
-                 stability_period: float, event_driven: bool = False, dynamics_dt: float | None = None):
+                 stability_period: float, period: float = 0.0, dynamics_dt: float | None = None):
         self.twin = twin
         self.dynamics_dt = dynamics_dt
         self._tick: tuple | None = None  # (commands, stamp) at the last tick, for dynamics
         self._result_stamp: int | None = None  # tick stamp of the last good dynamic step
         self._publish, self._log = publish, log
-        self.budget, self.stability_period, self.event_driven = budget, stability_period, event_driven
+        self.budget, self.stability_period, self.period = budget, stability_period, period
         self._cond = threading.Condition()
         self._commands = {kind: np.array(v, dtype=float) for kind, v in commands.items()}
         self._modes = tuple(modes)
         self._config = twin.config
         self._seq, self._solved_seq = 1, 0  # the first update solves the initial command ...
-        self._ticks = 1  # ... at once
+        self._next_tick = -np.inf  # ... at once (then every period from start)
+        self._ticks = 0 if dynamics_dt is None else 1  # periods passed since the last update (ticked: first at once)
         self._resets: list[Callable[[bool, str], None]] = []
         self._stopping = False
         self._last_stability = -np.inf
@@ -244,19 +252,34 @@ class TwinUpdater:
 
     def _changed(self) -> None:
         self._seq += 1
-        if self.event_driven:
+        if self.period <= 0 and self.dynamics_dt is None:
             self._cond.notify()
 
     # ------------------------------------------------------------------ the thread
-    def _due(self) -> bool:
-        return self._seq != self._solved_seq if self.event_driven else self._ticks > 0
+    def _wait_until_due(self) -> None:
+        """Wait (holding ``_cond``) for the next tick (own clock or :meth:`tick`), a change of the
+        mailbox (no period), a reset or stop; ``_ticks`` counts the periods that passed."""
+        while not (self._stopping or self._resets):
+            if self.dynamics_dt is not None or self.period <= 0:
+                if self._ticks > 0 if self.dynamics_dt is not None else self._seq != self._solved_seq:
+                    return
+                self._cond.wait()
+                continue
+            now = time.monotonic()
+            if now >= self._next_tick:
+                if self._next_tick == -np.inf:  # the first update: the schedule starts now
+                    self._next_tick = now
+                missed = int((now - self._next_tick) / self.period)  # periods a solve outlasted
+                self._ticks += 1 + missed
+                self._next_tick += (missed + 1) * self.period
+                return
+            self._cond.wait(self._next_tick - now)
 
     def _run(self) -> None:
         try:
             while True:
                 with self._cond:
-                    while not (self._stopping or self._resets or self._due()):
-                        self._cond.wait()
+                    self._wait_until_due()
                     if self._stopping:
                         return
                     resets, self._resets = self._resets, []

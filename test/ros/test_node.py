@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import COARSE
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
@@ -334,3 +335,15 @@ def test_best_effort_peers_connect_both_ways():
         while not any(m.data[1] > 0.0 for m in received) and time.monotonic() < deadline:
             time.sleep(0.05)
     assert any(list(m.data) == pytest.approx(list(state.effort), rel=1e-12) for m in received)
+
+
+def test_the_executor_waits_only_on_the_event_handlers_the_twin_uses():
+    """rclpy's default QoS event handlers (two per publisher and subscription, walked in Python at
+    every wake-up of the executor) are left out: the command subscriptions keep their publisher-matched
+    handler (it publishes diagnostics), the outputs have none."""
+    with TwinHarness(parameters={"update_rate": 20.0, "marker_rate": 0.0, **COARSE}) as h:
+        node = h.twin_node
+        outputs = {p.topic_name: len(p.event_handlers) for p in node.publishers if p.topic_name != "/parameter_events"}
+        commands = {s.topic_name: len(s.event_handlers) for s in node.subscriptions}
+    assert outputs == {"/force": 0, "/capacitance": 0, "/unit_states": 0, "/membrane": 0, "/diagnostics": 0}
+    assert commands == {"/command/displacement": 1, "/command/voltage": 1, "/command/force": 1}

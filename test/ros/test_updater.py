@@ -50,11 +50,11 @@ def wait_until(condition, timeout=10.0):
 def make_updater():
     made = []
 
-    def make(budget=0.05, event_driven=True):
+    def make(budget=0.05, period=0.0):
         twin, published = SlowTwin(), []
         updater = TwinUpdater(twin, {"displacement": [0.0, 0.0, 0.0], "voltage": [0.0, 0.0, 0.0]},
                               ("driven",) * 3, published.append, lambda key, text: None, budget,
-                              stability_period=1.0, event_driven=event_driven)
+                              stability_period=1.0, period=period)
         updater.start()
         made.append(updater)
         wait_until(lambda: published)  # the start-up solve of the zero command
@@ -124,20 +124,17 @@ def test_reset_pre_empts_a_running_solve_and_answers_at_once(make_updater):
     assert updater.stats().budget_overruns == 0  # a pre-emption is no overrun
 
 
-def test_skipped_ticks_count_only_periods_a_solve_really_outlasted(make_updater):
-    updater, twin, published = make_updater(budget=0.0, event_driven=False)
-    period = 0.02
-    for _ in range(20):  # idle: one tick at a time, nothing to solve
-        updater.tick()
-        time.sleep(period)
+def test_with_a_period_the_thread_updates_once_per_tick_and_counts_the_ticks_a_solve_outlasted(make_updater):
+    """Idle, it publishes the held state once per period and skips no tick; a 1 s solve at a
+    0.05 s period outlasts 20 ticks, of which the first is the next update and 19 are skipped."""
+    period = 0.05
+    updater, twin, published = make_updater(budget=0.0, period=period)
+    wait_until(lambda: len(published) >= 11)  # ten periods idle after the start-up solve
     assert updater.stats().skipped_ticks == 0
-    updater.post("displacement", [1.0, 0, 0])
     twin.started.clear()
-    updater.tick()
+    updater.post("displacement", [1.0, 0, 0])
     twin.started.wait(5)
-    for _ in range(10):  # ten ticks while the 1 s solve runs
-        time.sleep(period)
-        updater.tick()
-    wait_until(lambda: updater.stats().skipped_ticks > 0)
-    assert published[-1] == 1.0
-    assert updater.stats().skipped_ticks == 9  # the first of them is the next update
+    during = len(published)
+    wait_until(lambda: published[-1] == 1.0)
+    assert set(published[during:]) == {1.0}  # nothing published while the solve ran
+    assert updater.stats().skipped_ticks in (19, 20)  # 1 s / 0.05 s, less the next update (+1 if late)
