@@ -181,6 +181,7 @@ class SparsePattern:
         self.element_positions = self._inverse.reshape(dofs.shape[0], k, k)
         self.n_dofs = n_dofs
         self._blocks: dict[tuple[bytes, bytes], tuple] = {}
+        self._sums: dict[tuple[bytes, bytes], tuple] = {}
 
     def values(self, ke: np.ndarray) -> np.ndarray:
         """Global nonzero values from element matrices ``ke``."""
@@ -199,3 +200,16 @@ class SparsePattern:
             self._blocks[key] = (sel, cmap[self.cols[sel]], indptr, (row_dofs.size, col_dofs.size))
         sel, indices, indptr, shape = self._blocks[key]
         return sp.csr_matrix((values[sel], indices, indptr), shape=shape)
+
+    def column_sum(self, values: np.ndarray, row_dofs: np.ndarray, col_dofs: np.ndarray) -> np.ndarray:
+        """``K[row_dofs][:, col_dofs] @ 1`` without forming the block (``row_dofs`` sorted ascending)."""
+        key = (row_dofs.tobytes(), col_dofs.tobytes())
+        if key not in self._sums:
+            rmap = np.full(self.n_dofs, -1)
+            rmap[row_dofs] = np.arange(row_dofs.size)
+            cols = np.zeros(self.n_dofs, bool)
+            cols[col_dofs] = True
+            sel = np.flatnonzero((rmap[self.rows] >= 0) & cols[self.cols])
+            self._sums[key] = (sel, rmap[self.rows[sel]], row_dofs.size)
+        sel, rows, size = self._sums[key]
+        return np.bincount(rows, values[sel], minlength=size)

@@ -138,13 +138,13 @@ class IndenterBorder:
     def _blocks(self, fact) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``Y = K_ff^-1 K_fw`` (n_f, n_b), ``K_wf`` (n_b, n_f) and the membrane ``K_ww``, per factorisation."""
         if self._cache is None or self._cache[0] is not fact:
-            n_p = fact.k_fp.shape[1]
+            n_p = fact.prescribed.size
             y = np.empty((fact.free.size, self.units.size))
             for i, idx in enumerate(self.groups):
                 unit_move = np.zeros(n_p)
                 unit_move[idx] = 1.0
                 y[:, i] = -fact.predict(unit_move, [idx])
-            kwf = np.vstack([np.asarray(fact.k_fp[:, idx].sum(axis=1)).ravel() for idx in self.groups])
+            kwf = np.vstack([fact.coupling(idx) for idx in self.groups])
             kww = fact.disk_stiffness[np.ix_(self.units, self.units)]
             self._cache = (fact, y, kwf, kww)
         return self._cache[1:]

@@ -38,6 +38,7 @@ unit (snap-through) is detected and landed on the stable branch it jumps to
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -138,20 +139,33 @@ class NewtonSettings:
 
 @dataclass
 class Factorisation:
-    """An ``LDL^T`` factorisation of ``K_ff`` and the ``K_fp`` block at one state (:mod:`.linsolve`).
-
-    ``disk_stiffness`` is :meth:`.membrane.MembraneModel.disk_stiffness`, the ``K_ww``
-    block of biased units' heights (:mod:`.indenters`).
+    """An ``LDL^T`` factorisation of ``K_ff`` at one state (:mod:`.linsolve`), with the
+    tangent's nonzeros ``values`` it was made of: the ``K_fp`` block and the disks'
+    ``K_ww`` are cut from them when asked for (a checked update never needs them).
     """
 
     factor: LDLFactor
-    k_fp: object
+    values: np.ndarray
+    model: MembraneModel
     free: np.ndarray
     prescribed: np.ndarray
-    disk_stiffness: np.ndarray
     state: np.ndarray | None = None  # the converged positions it was computed at, if any
     _influence: dict = field(default_factory=dict)
     _negative: int | None = None
+
+    @functools.cached_property
+    def k_fp(self):
+        """The free-prescribed block ``K_fp`` (CSR)."""
+        return self.model.pattern.block(self.values, self.free, self.prescribed)
+
+    @functools.cached_property
+    def disk_stiffness(self) -> np.ndarray:
+        """:meth:`.membrane.MembraneModel.disk_stiffness`: the ``K_ww`` block of biased units' heights."""
+        return self.model.disk_stiffness(self.values)
+
+    def coupling(self, idx: np.ndarray) -> np.ndarray:
+        """``K_fp 1_idx``: the free dofs' forces per unit rigid move of the prescribed dofs ``idx``."""
+        return self.model.pattern.column_sum(self.values, self.free, self.prescribed[idx])
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``K_ff^-1 b``."""
@@ -183,7 +197,7 @@ class Factorisation:
             if amount[0] != 0.0 and np.all(amount == amount[0]):
                 key = idx.tobytes()
                 if key not in self._influence:
-                    self._influence[key] = -self.solve(np.asarray(self.k_fp[:, idx].sum(axis=1)).ravel())
+                    self._influence[key] = -self.solve(self.coupling(idx))
                 out += amount[0] * self._influence[key]
                 rest[idx] = 0.0
         if np.any(rest):
@@ -211,9 +225,7 @@ def factorise(model: MembraneModel, ke: np.ndarray, free: np.ndarray, prescribed
               backend: str = "block") -> Factorisation:
     """Assemble ``K`` from element matrices ``ke`` and factor its free-free block (no reuse)."""
     values = model.pattern.values(ke)
-    factor = Factoriser(model.pattern, free, backend).factor(values)
-    return Factorisation(factor, model.pattern.block(values, free, prescribed), free, prescribed,
-                         model.disk_stiffness(values))
+    return Factorisation(Factoriser(model.pattern, free, backend).factor(values), values, model, free, prescribed)
 
 
 class EquilibriumSolver:
@@ -255,8 +267,7 @@ class EquilibriumSolver:
     def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
         """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``."""
         factor = factoriser(self.model.pattern, free, self.settings.linear_solver).factor(values)
-        return Factorisation(factor, self.model.pattern.block(values, free, prescribed), free, prescribed,
-                             self.model.disk_stiffness(values))
+        return Factorisation(factor, values, self.model, free, prescribed)
 
     def factorise_at(self, x: np.ndarray, maxwell: np.ndarray, free: np.ndarray, prescribed: np.ndarray,
                      stats: SolveStats) -> Factorisation:
