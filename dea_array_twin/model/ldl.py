@@ -48,6 +48,36 @@ def elimination_tree(n, ap, ai):
     return parent, counts
 
 
+@numba.njit(inline="always", **_JIT)
+def invert_pivot(d, dk):
+    """Write ``D_k^-1`` of the symmetric 3x3 pivot ``d`` into ``dk``; return its negative eigenvalues.
+
+    The inertia comes from the pivots of ``d``'s own ``LDL^T``; -1 if one is zero (or not finite).
+    """
+    p0 = d[0, 0]
+    if p0 == 0.0:
+        return -1
+    l10, l20 = d[1, 0] / p0, d[2, 0] / p0
+    p1 = d[1, 1] - l10 * d[1, 0]
+    if p1 == 0.0:
+        return -1
+    l21 = (d[2, 1] - l20 * d[1, 0]) / p1
+    p2 = d[2, 2] - l20 * d[2, 0] - l21 * l21 * p1
+    if p2 == 0.0 or not (np.isfinite(p0) and np.isfinite(p1) and np.isfinite(p2)):
+        return -1
+    c00 = d[1, 1] * d[2, 2] - d[1, 2] * d[2, 1]
+    c01 = d[0, 2] * d[2, 1] - d[0, 1] * d[2, 2]
+    c02 = d[0, 1] * d[1, 2] - d[0, 2] * d[1, 1]
+    c11 = d[0, 0] * d[2, 2] - d[0, 2] * d[2, 0]
+    c12 = d[0, 2] * d[1, 0] - d[0, 0] * d[1, 2]
+    c22 = d[0, 0] * d[1, 1] - d[0, 1] * d[1, 0]
+    inv = 1.0 / (p0 * p1 * p2)  # det D_k
+    dk[0, 0], dk[0, 1], dk[0, 2] = c00 * inv, c01 * inv, c02 * inv
+    dk[1, 0], dk[1, 1], dk[1, 2] = c01 * inv, c11 * inv, c12 * inv
+    dk[2, 0], dk[2, 1], dk[2, 2] = c02 * inv, c12 * inv, c22 * inv
+    return (p0 < 0.0) + (p1 < 0.0) + (p2 < 0.0)
+
+
 @numba.njit(**_JIT)
 def factor(n, ap, ai, ax, lp, parent, li, lx, dinv):
     """Fill ``li``, ``lx`` (``L`` by block columns) and ``dinv`` (``D_k^-1``).
@@ -114,30 +144,10 @@ def factor(n, ap, ai, ax, lp, parent, li, lx, dinv):
             li[end] = k
             next_free[c] = end + 1
             marked[c] = False
-        # Inertia of the symmetric 3x3 D_k from its own LDL^T pivots, then its inverse.
-        p0 = d[0, 0]
-        if p0 == 0.0:
+        count = invert_pivot(d, dinv[k])
+        if count < 0:
             return -1
-        l10, l20 = d[1, 0] / p0, d[2, 0] / p0
-        p1 = d[1, 1] - l10 * d[1, 0]
-        if p1 == 0.0:
-            return -1
-        l21 = (d[2, 1] - l20 * d[1, 0]) / p1
-        p2 = d[2, 2] - l20 * d[2, 0] - l21 * l21 * p1
-        if p2 == 0.0 or not (np.isfinite(p0) and np.isfinite(p1) and np.isfinite(p2)):
-            return -1
-        negative += (p0 < 0.0) + (p1 < 0.0) + (p2 < 0.0)
-        c00 = d[1, 1] * d[2, 2] - d[1, 2] * d[2, 1]
-        c01 = d[0, 2] * d[2, 1] - d[0, 1] * d[2, 2]
-        c02 = d[0, 1] * d[1, 2] - d[0, 2] * d[1, 1]
-        c11 = d[0, 0] * d[2, 2] - d[0, 2] * d[2, 0]
-        c12 = d[0, 2] * d[1, 0] - d[0, 0] * d[1, 2]
-        c22 = d[0, 0] * d[1, 1] - d[0, 1] * d[1, 0]
-        inv = 1.0 / (p0 * p1 * p2)  # det D_k
-        dk = dinv[k]
-        dk[0, 0], dk[0, 1], dk[0, 2] = c00 * inv, c01 * inv, c02 * inv
-        dk[1, 0], dk[1, 1], dk[1, 2] = c01 * inv, c11 * inv, c12 * inv
-        dk[2, 0], dk[2, 1], dk[2, 2] = c02 * inv, c12 * inv, c22 * inv
+        negative += count
     return negative
 
 

@@ -12,14 +12,19 @@ of inertia ``D`` has as many negative eigenvalues as ``K_ff``, so the stability 
 
 Back ends:
 
-* ``"block"`` (the default): :mod:`.ldl`, compiled, on the 3x3 node blocks of
-  ``K_ff`` in a minimum-degree node ordering (SuperLU's MMD on the node graph, once);
-  the inertia comes out of the factorisation.  On the default 1-by-3 mesh it factors
-  in about 0.4x and solves in about 0.4x the time of QDLDL's scalar LDL^T.
+* ``"block"`` (the default): :mod:`.multifrontal`, compiled, on the 3x3 node blocks
+  of ``K_ff`` in a minimum-degree node ordering (SuperLU's MMD on the node graph, once,
+  then an elimination-tree postorder) with relaxed supernodes; dense fronts, the inertia
+  from the 3x3 pivots as it runs.
+* ``"block-uplooking"``: the same factorisation one 3x3 block at a time (:mod:`.ldl`,
+  the up-looking algorithm of QDLDL): the reference the tests compare ``"block"``
+  with.  On the default 1-by-3 mesh it factors in about 0.4x and solves in about 0.4x
+  the time of QDLDL's scalar LDL^T; ``"block"`` takes about the same on the 1-by-3 and
+  less on larger arrays (``benchmarks/bench_core.py --arrays``).
 * ``"superlu"`` (scipy): SuperLU with a symmetric minimum-degree ordering and
   diagonal pivots (``diag_pivot_thresh = 0``), an ``LDL^T`` in disguise whose ``U``
   diagonal is ``D``; if it had to pivot off the diagonal the inertia is unknown (-1).
-  No symbolic reuse.  Also the fallback of ``"block"`` when an exactly zero pivot
+  No symbolic reuse.  Also the fallback of the block back ends when an exactly zero pivot
   stops it, or when the free dofs are not whole nodes.
 """
 
@@ -31,10 +36,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from . import ldl
+from . import ldl, multifrontal
 from .assembly import SparsePattern
 
-BACKENDS = ("block", "superlu")
+BACKENDS = ("block", "block-uplooking", "superlu")
 
 #: Factorisers per pattern (shared by the twins of one geometry, see
 #: ``membrane._PATTERNS``) and set of free dofs: the symbolic analysis is pure data.
@@ -78,7 +83,7 @@ class Factoriser:
     free : ndarray
         Sorted free dof numbers.
     backend : str
-        ``"block"`` or ``"superlu"`` (see the module docstring).
+        ``"block"``, ``"block-uplooking"`` or ``"superlu"`` (see the module docstring).
     """
 
     def __init__(self, pattern: SparsePattern, free: np.ndarray, backend: str = "block"):
@@ -88,11 +93,11 @@ class Factoriser:
         nodes = free[::3] // 3
         whole_nodes = free.size % 3 == 0 and np.array_equal(free, (3 * nodes[:, None] + np.arange(3)).ravel())
         self.backend = backend if whole_nodes else "superlu"
-        if self.backend == "block":
+        if self.backend != "superlu":
             self._symbolic(nodes)
 
     def _symbolic(self, nodes: np.ndarray) -> None:
-        """Node ordering, block pattern of the upper triangle, elimination tree, value map."""
+        """Node ordering, elimination tree, supernodes, fronts and value maps (once per free set)."""
         pattern, n = self.pattern, nodes.size
         index = np.full(pattern.n_dofs // 3, -1)
         index[nodes] = np.arange(n)
@@ -102,44 +107,84 @@ class Factoriser:
         graph.sum_duplicates()
         graph.data[:] = 1.0
         # Minimum-degree ordering of the node graph (diagonally dominant, so SuperLU keeps
-        # its symmetric ordering): block row i of the factor is node order[i].
+        # its symmetric ordering), then a postorder of its elimination tree (the same fill;
+        # the multifrontal stack needs it): block row i of the factor is node order[i].
         lu = spla.splu((graph + 10.0 * sp.eye(n)).tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                        options={"SymmetricMode": True})
         order = np.argsort(lu.perm_c)
+        ap, ai = self._upper(graph, order)
+        order = order[multifrontal.postorder(ldl.elimination_tree(n, ap, ai)[0])]
+        ap, ai = self._upper(graph, order)
+        parent, counts = ldl.elimination_tree(n, ap, ai)
+        upper = self._positions(nodes[order], ap, ai)
+        lower = sp.tril(graph[order][:, order], format="csc")
+        lower.sort_indices()
+        bp, bi = lower.indptr.astype(np.int64), lower.indices.astype(np.int64)
+        positions = self._positions(nodes[order], bp, bi)
+        if upper is None or positions is None:
+            self.backend = "superlu"  # a node pair coupled in some components only: not 3x3 blocks
+            return
+        lp = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._n, self._order, self._lp = n, order.astype(np.int64), lp
+        if self.backend == "block-uplooking":
+            self._ap, self._ai, self._parent, self._position = ap, ai, parent, upper
+            return
+        # Supernodes: column j joins j - 1 when j is j - 1's parent and only child and
+        # its pattern is j - 1's without row j.
+        children = np.bincount(parent[parent >= 0], minlength=n)
+        j = np.arange(1, n)
+        joins = (parent[j - 1] == j) & (counts[j] == counts[j - 1] - 1) & (children[j] == 1)
+        start = multifrontal.amalgamate(np.concatenate([[0], j[~joins], [n]]).astype(np.int64), counts, parent)
+        li = multifrontal.row_pattern(n, ap, ai, parent, lp)
+        fp, fn, front_children, stack_size, largest, self._lp, self._li = multifrontal.fronts(start, lp, li, parent)
+        self._frontal = (bp, bi, positions, start, fp, fn, front_children, self._lp)
+        self._sizes = (int(stack_size), int(largest))
+
+    @staticmethod
+    def _upper(graph: sp.csc_matrix, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Upper triangle's block pattern (CSC) of ``graph`` in ``order``."""
         upper = sp.triu(graph[order][:, order], format="csc")
         upper.sort_indices()
-        ap, ai = upper.indptr.astype(np.int64), upper.indices.astype(np.int64)
-        parent, counts = ldl.elimination_tree(n, ap, ai)
-        # Position in the pattern's nonzeros of entry (a, c) of block (ai[p], column of p).
-        col = np.repeat(np.arange(n), np.diff(ap))
-        r = 3 * nodes[order[ai]][:, None, None] + np.arange(3)[None, :, None]
-        c = 3 * nodes[order[col]][:, None, None] + np.arange(3)[None, None, :]
+        return upper.indptr.astype(np.int64), upper.indices.astype(np.int64)
+
+    def _positions(self, nodes: np.ndarray, bp: np.ndarray, bi: np.ndarray) -> np.ndarray | None:
+        """Position in the pattern's nonzeros of entry (a, c) of block (bi[p], column of p), shape (nnz, 3, 3).
+
+        None when a node pair is coupled in some components only (not 3x3 blocks).
+        """
+        pattern = self.pattern
+        col = np.repeat(np.arange(bp.size - 1), np.diff(bp))
+        r = 3 * nodes[bi][:, None, None] + np.arange(3)[None, :, None]
+        c = 3 * nodes[col][:, None, None] + np.arange(3)[None, None, :]
         keys = pattern.rows * pattern.n_dofs + pattern.cols
         wanted = (r * pattern.n_dofs + c).ravel()
         position = np.searchsorted(keys, wanted)
         if np.any(position >= keys.size) or np.any(keys[np.minimum(position, keys.size - 1)] != wanted):
-            self.backend = "superlu"  # a node pair coupled in some components only: not 3x3 blocks
-            return
-        self._n, self._order, self._ap, self._ai, self._parent = n, order.astype(np.int64), ap, ai, parent
-        self._lp = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._position = position.reshape(-1, 3, 3)
+            return None
+        return position.reshape(-1, 3, 3)
 
     def factor(self, values: np.ndarray) -> LDLFactor:
         """Factor ``K_ff`` of the pattern's nonzeros ``values``."""
+        if self.backend == "superlu":
+            return self._superlu(values)
+        n, lp = self._n, self._lp
+        lx, dinv = np.empty((lp[-1], 3, 3)), np.empty((n, 3, 3))
         if self.backend == "block":
-            n, lp = self._n, self._lp
-            li, lx, dinv = np.empty(lp[-1], np.int64), np.empty((lp[-1], 3, 3)), np.empty((n, 3, 3))
+            li = self._li
+            negative = multifrontal.factor(values, *self._frontal, lx, dinv, *self._sizes)
+        else:
+            li = np.empty(lp[-1], np.int64)
             negative = ldl.factor(n, self._ap, self._ai, values[self._position], lp, self._parent, li, lx, dinv)
-            if negative >= 0:
-                order = self._order
+        if negative < 0:
+            return self._superlu(values)  # a zero pivot stopped the block factorisation
+        order = self._order
 
-                def solve(b: np.ndarray) -> np.ndarray:
-                    x = np.empty(b.size)
-                    ldl.solve(n, lp, li, lx, dinv, order, np.ascontiguousarray(b, dtype=float), x)
-                    return x
+        def solve(b: np.ndarray) -> np.ndarray:
+            x = np.empty(b.size)
+            ldl.solve(n, lp, li, lx, dinv, order, np.ascontiguousarray(b, dtype=float), x)
+            return x
 
-                return LDLFactor(solve, negative)
-        return self._superlu(values)  # also when a zero pivot stopped the block factorisation
+        return LDLFactor(solve, negative)
 
     def _superlu(self, values: np.ndarray) -> LDLFactor:
         k_ff = self.pattern.block(values, self.free, self.free).tocsc()  # symmetric: CSR data is CSC

@@ -101,8 +101,9 @@ class NewtonSettings:
         ``check_stability`` is off: a jump is where a spurious branch is likely,
         and one factorisation is cheap next to its load steps.
     linear_solver : str
-        Factorisation of ``K_ff`` (:mod:`.linsolve`): ``"block"`` (compiled LDL^T on
-        3x3 node blocks with symbolic reuse, the default) or ``"superlu"`` (scipy).
+        Factorisation of ``K_ff`` (:mod:`.linsolve`): ``"block"`` (compiled multifrontal
+        LDL^T on 3x3 node blocks with symbolic reuse, the default), ``"block-uplooking"``
+        (the same, one block at a time: the reference) or ``"superlu"`` (scipy).
     snap_step : float
         Load-path fraction below which a step of a path with biased units that fails
         to converge, or that moves a height ``jump_tol`` away from its linear

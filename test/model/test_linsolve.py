@@ -115,3 +115,34 @@ def test_a_checked_solve_whose_inertia_is_unknown_reports_stability_unknown(monk
     assert known.stable is True and unknown.stable is None
     assert "unstable" not in unknown.flags
     assert unknown.force[1] == pytest.approx(known.force[1], rel=1e-9)
+
+
+def test_multifrontal_ldl_equals_the_uplooking_reference_on_stable_and_unstable_states():
+    """The multifrontal factorisation (the default) and the one-block-at-a-time up-looking
+    one (model/ldl.py) are the same LDL^T: equal negative pivot counts (0 on the stable
+    tangents, several on the compressed circle and the saddle) and solves of K_ff x = b
+    equal to 1e-12 of |x|.  Some of these factors have relaxed supernodes (explicit zeros
+    stored in L), so the padded layout is exercised too."""
+    padded = False
+    for name, model, free, values in _states():
+        fronts, reference = Factoriser(model.pattern, free, "block"), Factoriser(model.pattern, free, "block-uplooking")
+        assert fronts.backend == "block" and reference.backend == "block-uplooking"
+        padded |= fronts._lp[-1] > reference._lp[-1]
+        ours, ref = fronts.factor(values), reference.factor(values)
+        assert ours.negative_pivots() == ref.negative_pivots(), name
+        b = np.random.default_rng(2).standard_normal(free.size)
+        x_ours, x_ref = ours.solve(b), ref.solve(b)
+        assert np.abs(x_ours - x_ref).max() <= 1e-12 * np.abs(x_ref).max(), name
+    assert padded
+
+
+def test_coupling_to_a_rigid_disk_move_equals_the_column_sum_of_k_fp():
+    """Factorisation.coupling (K_fp 1_idx from the pattern's nonzeros, without cutting K_fp)
+    equals the sum of K_fp's columns over idx, to rounding."""
+    twin = ArrayTwin(ArrayConfig(**COARSE))
+    twin.solve([0, 0.004, 0], 0.0, FREE_CENTRE)
+    fact = twin.solver.factorisation
+    idx = twin.solver._groups(tuple(FREE_CENTRE))[0]
+    expected = np.asarray(fact.k_fp[:, idx].sum(axis=1)).ravel()
+    np.testing.assert_allclose(fact.coupling(idx), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    assert np.abs(expected).max() > 0
