@@ -12,7 +12,10 @@ of each neighbour, so it is a sparse matrix of dense 3x3 blocks.  It is factored
 
     L(k, i) = w_i^T D_i^-1,        D_k = K(k, k) - sum_i L(k, i) w_i.
 
-Working on blocks makes one index load serve 27 multiply-adds.  By Sylvester's law of
+Working on blocks makes one index load serve 27 multiply-adds.  The default back end
+computes the same factors multifrontally (:mod:`.multifrontal`, dense fronts); this
+one-block-at-a-time form is its reference (``linear_solver="block-uplooking"``), and
+:func:`solve` serves both.  By Sylvester's law of
 inertia the negative eigenvalues of ``K_ff`` are those of the blocks ``D_k``, counted
 from the pivots of each block's own 3x3 ``LDL^T``.  No pivoting beyond the ordering:
 an exactly zero pivot stops the factorisation (reported, the caller falls back).
