@@ -2,7 +2,7 @@
 
 Run:
   .venv/bin/python benchmarks/bench_core.py [CONFIG] [--rounds N] [--before DIR]
-  .venv/bin/python benchmarks/bench_core.py --arrays [--sizes 1x3,2x2,3x3,4x4,8x8] [--refine 1.5,2,3]
+  .venv/bin/python benchmarks/bench_core.py --arrays [--sizes 1x3,2x2,3x3,4x4,8x8] [--refine 1.5,2,3] [--before DIR]
   .venv/bin/python benchmarks/bench_core.py --node SECONDS
 
 Default: the 1-by-3 array (CONFIG, default the paper's Table 1 and mesh), unit 2
@@ -22,7 +22,9 @@ alternating with this checkout round by round, so both see the same machine load
 grids with square frames of n D + (n - 1) d + 2 b (155 mm for 4x4, 295 mm for 8x8),
 default mesh sizes, plus the 1-by-3 with every mesh size divided by the --refine
 factors; dofs, mesh time, first solve to 5 mm, warm (0.1 mm) and checked update
-medians, and the growth exponent of time against dofs.
+medians, and the growth exponent of time against dofs; with ``--before DIR`` each row
+is measured in fresh processes on this checkout and on DIR, alternating, and DIR's
+warm/checked medians are printed beside.
 
 ``--node``: the twin node in its own process at ``update_rate: 500`` with a smooth
 command stream (a 1 Hz sine on each unit, sent at 500 Hz), stability checks at the
@@ -230,31 +232,61 @@ def measure_array(cfg, warm_count: int, checked_count: int) -> dict:
             "checked_ms": 1e3 * statistics.median(checked[0]), "checked_its": float(np.mean(checked[1]))}
 
 
-def main_arrays(args) -> None:
+def _array_rows(sizes: str, refine: str) -> list[tuple[str, object]]:
+    """(name, config) of the scaling rows: the grids, then the 1-by-3 refined by each factor."""
     from dea_array_twin import ArrayConfig
 
     rows = []
-    for size in args.sizes.split(","):
+    for size in sizes.split(","):
         r, c = (int(v) for v in size.split("x"))
         rows.append((size, _grid(r, c) if (r, c) != (1, 3) else ArrayConfig()))
     base = ArrayConfig()
-    for f in (float(v) for v in args.refine.split(",") if v):
+    for f in (float(v) for v in refine.split(",") if v):
         refined = base.replace(mesh_size=base.mesh_size / f, mesh_size_electrode=base.mesh_size_electrode / f,
                                mesh_size_indenter=base.mesh_size_indenter / f)
         rows.append((f"1x3 /{f:g}", refined))
-    print(f"scaling: centre unit driven to 5 mm, others free; {_load()} at start")
+    return rows
+
+
+def _measure_row_of(name: str, cfg) -> dict:
+    big = cfg.n_units >= 36
+    return measure_array(cfg, 10 if big else 40, 5 if big else 20)
+
+
+def _run_array_worker(code_dir: str, name: str, refine: str) -> dict:
+    """One scaling row measured in a fresh process on the code in ``code_dir``."""
+    env = dict(os.environ, PYTHONPATH=os.path.abspath(code_dir))
+    sizes = name if "/" not in name else "1x3"
+    cmd = [sys.executable, __file__, "--worker-array", name, "--sizes", sizes, "--refine", refine]
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main_arrays(args) -> None:
+    rows = _array_rows(args.sizes, args.refine)
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    print(f"scaling: centre unit driven to 5 mm, others free; {_load()} at start"
+          + (f"; each row in fresh processes, this checkout and {args.before} alternating" if args.before else ""))
     print(f"{'array':10s} {'frame mm':>10s} {'dofs':>7s} {'mesh s':>7s} {'first s (its/facts)':>20s} "
-          f"{'warm ms (its, facts)':>22s} {'checked ms':>10s} {'goal w/c/first':>16s} {'issue before w/c ms':>22s}")
+          f"{'warm ms (its, facts)':>22s} {'checked ms':>10s} " + (f"{'before w/c ms':>16s} " if args.before else "")
+          + f"{'goal w/c/first':>16s} {'issue before w/c ms':>22s}")
     dofs, warm, checked = [], [], []
-    for name, cfg in rows:
-        big = cfg.n_units >= 36
-        m = measure_array(cfg, 10 if big else 40, 5 if big else 20)
+    for i, (name, cfg) in enumerate(rows):
+        if args.before:
+            refine = name.split("/")[1] if "/" in name else ""
+            versions = [("after", here), ("before", args.before)]
+            got = {v: _run_array_worker(code, name, refine) for v, code in (versions if i % 2 == 0 else versions[::-1])}
+            m, old = got["after"], got["before"]
+            before = f"{old['warm_ms']:.2f}/{old['checked_ms']:.1f}"
+        else:
+            m, before = _measure_row_of(name, cfg), None
         goal = ARRAY_TARGETS.get(name)
         goal_s = "/".join("-" if g is None else f"{g:g}" for g in goal) if goal else ""
         first = f"{m['first'][0]:.2f} ({m['first'][1]}/{m['first'][2]})"
         print(f"{name:10s} {cfg.length * 1e3:4.0f}x{cfg.width * 1e3:<5.0f} {m['dofs']:7d} {m['mesh_s']:7.2f} "
               f"{first:>20s} {m['warm_ms']:8.2f} ({m['warm_its']:.1f}, {m['warm_facts']:.2f}) "
-              f"{m['checked_ms']:10.1f} {goal_s:>16s} {ARRAY_BEFORE.get(name, ''):>22s}", flush=True)
+              f"{m['checked_ms']:10.1f} " + (f"{before:>16s} " if before else "")
+              + f"{goal_s:>16s} {ARRAY_BEFORE.get(name, ''):>22s}", flush=True)
         dofs.append(m["dofs"])
         warm.append(m["warm_ms"])
         checked.append(m["checked_ms"])
@@ -311,11 +343,15 @@ def main() -> None:
     parser.add_argument("--node", type=float, metavar="SECONDS",
                         help="measure the twin node at update_rate 500 on a sine command for SECONDS instead")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-array", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         from dea_array_twin import load_config
 
         print(json.dumps(measure_row(load_config(args.config))))
+    elif args.worker_array:
+        cfg = dict(_array_rows(args.sizes, args.refine))[args.worker_array]
+        print(json.dumps(_measure_row_of(args.worker_array, cfg)))
     elif args.arrays:
         main_arrays(args)
     elif args.node:
