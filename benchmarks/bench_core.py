@@ -3,7 +3,7 @@
 Run:
   .venv/bin/python benchmarks/bench_core.py [CONFIG] [--rounds N] [--before DIR]
   .venv/bin/python benchmarks/bench_core.py --arrays [--sizes 1x3,2x2,3x3,4x4,8x8] [--refine 1.5,2,3] [--before DIR]
-  .venv/bin/python benchmarks/bench_core.py --node SECONDS
+  .venv/bin/python benchmarks/bench_core.py --node SECONDS [--rounds N] [--before DIR]
 
 Default: the 1-by-3 array (CONFIG, default the paper's Table 1 and mesh), unit 2
 driven, its neighbours free, V = 0:
@@ -28,7 +28,9 @@ warm/checked medians are printed beside.
 
 ``--node``: the twin node in its own process at ``update_rate: 500`` with a smooth
 command stream (a 1 Hz sine on each unit, sent at 500 Hz), stability checks at the
-default period; the share of ticks it publishes outputs for (goal >= 99 %).
+default period; the share of ticks it publishes outputs for (goal >= 99 %), the CPU the node
+process used (cores) and its diagnostics; with ``--before DIR`` alternating with the code in
+DIR, a fresh node process per round.
 
 Not a test: numbers for the notes.  The load (``os.getloadavg``) is printed with them.
 """
@@ -53,6 +55,7 @@ TARGETS = {  # key: (label, unit, before, target)
     "curve_checked": ("16-point curve, checked at every point", "s", "0.84 [a]", 0.25),
     "cold": ("cold solve 0 -> 15 mm", "ms", "1000-2000 (31 facts)", 250.0),
 }
+NODE_RATE = 500.0  # update_rate and command rate of --node [Hz]
 ARRAY_TARGETS = {"4x4": (10.0, 50.0, None), "8x8": (50.0, 250.0, 3.0)}  # warm ms, checked ms, first solve s
 ARRAY_BEFORE = {"1x3": "4-10/30-60", "2x2": "7.7/66", "3x3": "24.7/166", "4x4": "36.5/294",
                 "8x8": "94-1420/1200+ (first 5 mm: 24 s incl. mesh)"}
@@ -298,37 +301,67 @@ def main_arrays(args) -> None:
 
 
 # ----------------------------------------------------------------------------- node
-def main_node(args) -> None:
-    """The twin node (its own process) at update_rate 500 on a 1 Hz sine command on each unit."""
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time [s] of process ``pid`` so far (Linux /proc)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def measure_node(seconds: float) -> dict:
+    """The twin node (its own process) at update_rate 500 on a 1 Hz sine command on each unit, sent from
+    this process at 500 Hz: the share of ticks with a force message, the node's CPU and its diagnostics."""
     import math
 
     from dea_array_twin.ros.testing import TwinHarness
 
-    rate, seconds = 500.0, args.node
-    params = {"update_rate": rate, "marker_rate": 0.0}
-    print(f"node: update_rate {rate:g} Hz, commands at {rate:g} Hz: unit k at 5 + 4 sin(2 pi t + 2 pi k / 3) mm, "
-          f"stability_check_period 1 s (default); {seconds:g} s measured after 2 s; {_load()} at start")
-    with TwinHarness(parameters=params, process=True) as h:
-        start = time.monotonic()
-        window = None
-        tick = start
+    rate = NODE_RATE
+    with TwinHarness(parameters={"update_rate": rate, "marker_rate": 0.0}, process=True) as h:
+        start = tick = time.monotonic()
+        window = cpu = None
         while time.monotonic() - start < seconds + 2.0:
             t = time.monotonic() - start
             h.send_displacement([0.005 + 0.004 * math.sin(2 * math.pi * (t + k / 3.0)) for k in range(3)])
             if window is None and t >= 2.0:
                 h.clear()
-                window = time.monotonic()
+                window, cpu = time.monotonic(), _cpu_seconds(h.process.pid)
             tick += 1.0 / rate
             time.sleep(max(0.0, tick - time.monotonic()))
         elapsed = time.monotonic() - window
+        cpu = (_cpu_seconds(h.process.pid) - cpu) / elapsed
         forces = len(h.messages("force"))
-        diags = [m for m in h.messages("/diagnostics")]
+        diags = h.messages("/diagnostics")
     values = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
-    held = forces / (rate * elapsed)
-    print(f"  force messages {forces} in {elapsed:.2f} s = {forces / elapsed:.1f} /s: {100 * held:.1f} % of the "
-          f"ticks (goal >= 99 %); last diagnostics: updates {values.get('updates')}, skipped_ticks "
-          f"{values.get('skipped_ticks')}, solve_time_ms {values.get('solve_time_ms')}, iterations "
-          f"{values.get('iterations')}; {_load()} at the end")
+    return {"held": 100.0 * forces / (rate * elapsed), "outputs_per_s": forces / elapsed, "node_cpu": cpu,
+            "solve_ms_p50": float(values.get("solve_time_p50_ms", "nan")),
+            "iterations": values.get("iterations"), "updates": values.get("updates"),
+            "skipped_ticks": values.get("skipped_ticks"),
+            "background_tangents": values.get("background_tangents_installed", "-"), "load": os.getloadavg()[0]}
+
+
+def main_node(args) -> None:
+    """The node benchmark, --rounds fresh node processes per version, alternating with --before."""
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # this checkout, not the install
+    versions = [("after", here)] + ([("before", os.path.abspath(args.before))] if args.before else [])
+    print(f"node: update_rate {NODE_RATE:g} Hz, commands at {NODE_RATE:g} Hz from another process: unit k at "
+          f"5 + 4 sin(2 pi t + 2 pi k / 3) mm, stability_check_period 1 s (default); {args.node:g} s measured "
+          f"after 2 s; {args.rounds} round(s) per version; {_load()} at start")
+    print(f"{'round':>5s} {'version':>7s} {'ticks held':>10s} {'outputs/s':>9s} {'node CPU':>8s} "
+          f"{'solve p50 ms':>12s} {'its':>4s} {'updates':>7s} {'skipped':>7s} {'bg tangents':>11s} {'load':>5s}")
+    held: dict[str, list[float]] = {name: [] for name, _ in versions}
+    for r in range(args.rounds):
+        for name, code in (versions if r % 2 == 0 else versions[::-1]):
+            env = dict(os.environ, PYTHONPATH=code)  # the node process (python -m) imports from its cwd first
+            done = subprocess.run([sys.executable, os.path.abspath(__file__), "--node-worker", str(args.node)],
+                                  cwd=code, env=env, capture_output=True, text=True, check=True)
+            m = json.loads(done.stdout.strip().splitlines()[-1])
+            held[name].append(m["held"])
+            print(f"{r + 1:5d} {name:>7s} {m['held']:9.1f}% {m['outputs_per_s']:9.1f} {m['node_cpu']:8.2f} "
+                  f"{m['solve_ms_p50']:12.2f} {str(m['iterations']):>4s} {str(m['updates']):>7s} "
+                  f"{str(m['skipped_ticks']):>7s} {str(m['background_tangents']):>11s} {m['load']:5.2f}", flush=True)
+    for name, values in held.items():
+        print(f"{name}: ticks held, median of {len(values)}: {statistics.median(values):.1f} % (goal >= 99 %)")
+    print(f"node CPU: cores the node process used (executor, solver and tangent threads); {_load()} at the end")
 
 
 def main() -> None:
@@ -344,6 +377,7 @@ def main() -> None:
                         help="measure the twin node at update_rate 500 on a sine command for SECONDS instead")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--worker-array", help=argparse.SUPPRESS)
+    parser.add_argument("--node-worker", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         from dea_array_twin import load_config
@@ -352,6 +386,8 @@ def main() -> None:
     elif args.worker_array:
         cfg = dict(_array_rows(args.sizes, args.refine))[args.worker_array]
         print(json.dumps(_measure_row_of(args.worker_array, cfg)))
+    elif args.node_worker:
+        print(json.dumps(measure_node(args.node_worker)))
     elif args.arrays:
         main_arrays(args)
     elif args.node:
