@@ -4,6 +4,8 @@ Meshes are cached by the library per geometry, so building a twin of a geometry 
 before costs milliseconds.
 """
 
+import math
+
 import pytest
 import yaml
 
@@ -16,6 +18,11 @@ FREE_CENTRE = ("free", "driven", "free")
 #: tests"): forces within 0.19 %, capacitance changes within 0.37 %, coupling indices within
 #: 0.09 points; DE2 at 15 mm, neighbours free: force 0.14 %, capacitance 0.07 %.
 COARSE = {"mesh_size": 20e-3, "mesh_size_indenter": 2.5e-3, "mesh_size_electrode": 5e-3}
+#: A bistable dome under the circular unit, as a config's table bias entry:
+#: B = 0.2035 + 0.08 tanh((w - 7 mm) / 1 mm) N on 0-16 mm (test/model/test_actuator.py
+#: describes its branches); also the measured characteristic of the bias-design tests.
+DOME_W = [0.0005 * i for i in range(33)]
+DOME = {"type": "table", "position": DOME_W, "force": [0.2035 + 0.08 * math.tanh((w - 0.007) / 0.001) for w in DOME_W]}
 
 
 @pytest.fixture

@@ -24,7 +24,16 @@ and :mod:`.scenarios`):
 * rest: the indenters held at ``start`` are released onto their biases, the homotopy
   ``G = t B(w) + (1 - t) F(start)`` from t = 0 to 1 at 0 V;
 * a voltage change from pattern P to Q: ``F = (1 - s) F_P + s F_Q`` with ``s = u^2`` at
-  the voltage fraction u (the electrostatic load goes with V^2), in :data:`LEVELS` steps.
+  the voltage fraction u (the electrostatic load goes with V^2), in steps of at most
+  1 / :data:`PATH_LEVELS` of the voltage (the full solves' path points,
+  :data:`~.solves.PATH_LEVELS`).
+
+The stability margin a design must keep is checked at every point of the voltage
+paths: the state a voltage change starts from and every step it takes (the smallest of
+them is the scenario's margin), not only at the end states: the net stiffness of a unit
+on a bias whose slope peaks between its 0 V and its V height dips on the way.  The
+release's intermediate states are not physical (the held indenter is let go), so only
+its end, the rest state, counts.
 
 Each step starts with the Newton step from the last equilibrium (the linear
 prediction); a step that fails to converge, ends on an unstable state, or lands more
@@ -46,9 +55,10 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .scenarios import Scenario
+from .solves import PATH_LEVELS
 
-#: Voltage steps of a pattern change, and of the release onto the bias; the shortest step
-#: (fraction of the path) a design's path is cut to before a bad step counts as a snap-through.
+#: Load steps of the release onto the bias; the shortest step (fraction of the path) a
+#: design's path is cut to before a bad step counts as a snap-through.
 LEVELS = 2
 MIN_STEP = 1.0 / 256.0
 #: Newton iterations per step, and the convergence tolerance as a fraction of the grid step.
@@ -173,7 +183,8 @@ class Evaluation:
     low, high : ndarray, shape (designs, scenarios, n_units)
         Heights of every unit in the low and high state (NaN for units not biased there).
     margin : ndarray, shape (designs, scenarios)
-        Smallest stability margin of the low and high states [N/m].
+        Smallest stability margin along the paths to the low and the high state [N/m]
+        (every load step of the voltage changes, and the state they start from).
     bias_force : ndarray, shape (designs, scenarios)
         Largest ``|B|`` of a biased unit in the low and high states [N].
     snapped : ndarray of bool, shape (designs,)
@@ -193,10 +204,11 @@ class Evaluation:
 
 @dataclass
 class _Path:
-    """Where a path ends for each design: heights and whether it snapped."""
+    """Where a path ends for each design: heights, whether it snapped, the smallest margin on the way."""
 
     w: np.ndarray
     snapped: np.ndarray
+    margin: np.ndarray
 
 
 def _smallest_eigenvalue(jac: np.ndarray) -> np.ndarray:
@@ -271,11 +283,11 @@ class InnerModel:
         return w
 
     def _advance(self, step: _Step, w: np.ndarray, rows: np.ndarray, tol: float,
-                 jump: float) -> tuple[np.ndarray, np.ndarray]:
+                 jump: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One load step of the designs ``rows`` from their equilibria ``w``.
 
-        Returns the new heights and whether the step is good (found, stable, within ``jump``
-        of the linear prediction)."""
+        Returns the new heights, whether the step is good (found, stable, within ``jump``
+        of the linear prediction) and the new states' margins."""
         r, jac = step.residual(w, rows)
         predicted = w + _solve_rows(jac, -r)
         new = self._newton(step, predicted, rows, tol)
@@ -284,42 +296,54 @@ class InnerModel:
         if found.any():
             margin[found] = _smallest_eigenvalue(step.residual(new[found], rows[found])[1])
         ok = found & (margin > 0) & (np.abs(new - predicted).max(axis=1, initial=0.0) <= jump)
-        return new, ok
+        return new, ok, margin
 
-    def _ramp(self, level: Callable[[np.ndarray], _Step], w: np.ndarray, tol: float, jump: float) -> _Path:
+    def _ramp(self, level: Callable[[np.ndarray], _Step], w: np.ndarray, tol: float, jump: float,
+              levels: int) -> _Path:
         """Follow the load ``level(t)`` (``t`` per design, from 0 to 1) from the equilibria ``w``.
 
-        Steps start at 1 / :data:`LEVELS` of the path, halve after a bad step and double after
-        a good one; a bad step of :data:`MIN_STEP` is a limit point: a snap-through (the
-        design fails, or with ``allow_snap`` lands on the branch it jumps to)."""
+        Steps start at 1 / ``levels`` of the path, halve after a bad step and double after
+        a good one up to that, and stop at every path point ``j / levels``; a bad step of
+        :data:`MIN_STEP` is a limit point: a snap-through (the design fails, or with
+        ``allow_snap`` lands on the branch it jumps to).  The margin is the smallest at ``w``
+        and at every step taken."""
         m = w.shape[0]
         started = np.all(np.isfinite(w), axis=1)
         active = started.copy()
         x = w.copy()
         t = np.zeros(m)
-        dt = np.full(m, 1.0 / LEVELS)
+        dt = np.full(m, 1.0 / levels)
         snapped = np.zeros(m, dtype=bool)
+        path_margin = np.full(m, np.nan)
+        if started.any():
+            rows = np.flatnonzero(started)
+            path_margin[rows] = _smallest_eigenvalue(level(t).residual(x[rows], rows)[1])
         while True:
             rows = np.flatnonzero(active & (t < 1.0))
             if not rows.size:
                 break
             t_next = t.copy()
-            t_next[rows] = np.minimum(1.0, t[rows] + dt[rows])
+            path_point = (np.floor(t[rows] * levels + 1e-9) + 1.0) / levels  # never stepped over
+            t_next[rows] = np.minimum(np.minimum(1.0, path_point), t[rows] + dt[rows])
             step = level(t_next)
-            new, ok = self._advance(step, x[rows], rows, tol, jump)
+            new, ok, margin = self._advance(step, x[rows], rows, tol, jump)
             good, bad = rows[ok], rows[~ok]
             x[good], t[good] = new[ok], t_next[good]
-            dt[good] = np.minimum(2.0 * dt[good], 1.0 / LEVELS)
+            path_margin[good] = np.fmin(path_margin[good], margin[ok])
+            dt[good] = np.minimum(2.0 * dt[good], 1.0 / levels)
             dt[bad[dt[bad] > MIN_STEP]] *= 0.5
             for row in bad[dt[bad] <= MIN_STEP]:  # a limit point: no good step however short
                 snapped[row] = True
                 x[row] = self._land(step, x[row], row, tol) if self.allow_snap else np.nan
                 if np.all(np.isfinite(x[row])):
                     t[row] = t_next[row]
+                    landed = _smallest_eigenvalue(step.residual(x[row][None, :], np.array([row]))[1])[0]
+                    path_margin[row] = min(path_margin[row], landed)
                 else:
                     active[row] = False
         x[~active] = np.nan
-        return _Path(x, snapped)
+        path_margin[~active] = np.nan
+        return _Path(x, snapped, path_margin)
 
     def _land(self, step: _Step, w: np.ndarray, row: int, tol: float) -> np.ndarray:
         """The stable state design ``row`` snaps to at ``step``'s load, from its last equilibrium ``w``.
@@ -401,8 +425,9 @@ class InnerModel:
             lows = [p for p in dict.fromkeys(sc.low for _, sc in mine) if p != rest_pattern]
 
             def batch(design: np.ndarray, start: np.ndarray, end: np.ndarray, w: np.ndarray,
-                      release: bool = False) -> np.ndarray:
-                """Ramp rows (design, start pattern -> end pattern) from heights ``w``; the end heights."""
+                      release: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                """Ramp rows (design, start pattern -> end pattern) from heights ``w``: the end heights and
+                the smallest margin on the way (of the release: its end's)."""
                 nonlocal snapped, failed, ramps
                 p0 = np.array([models.index[p] for p in start], dtype=int)
                 p1 = np.array([models.index[p] for p in end], dtype=int)
@@ -432,36 +457,36 @@ class InnerModel:
                                 (1 - f)[:, None, None] * jp + f[:, None, None] * jq
                         return _Step(membrane, bias)
 
-                path = self._ramp(level, w, tol, jump)
+                path = self._ramp(level, w, tol, jump, LEVELS if release else PATH_LEVELS)
                 np.logical_or.at(snapped, design, path.snapped)
                 np.add.at(failed, design, ~np.all(np.isfinite(path.w), axis=1))
                 np.add.at(ramps, design, 1.0)
-                return path.w
+                if release:  # its intermediate states are not physical: only the rest state counts
+                    rest_margin = np.full(design.size, np.nan)
+                    found = np.flatnonzero(np.all(np.isfinite(path.w), axis=1))
+                    if found.size:
+                        jac = level(np.ones(design.size)).residual(path.w[found], found)[1]
+                        rest_margin[found] = _smallest_eigenvalue(jac)
+                    return path.w, rest_margin
+                return path.w, path.margin
 
             everyone = np.arange(m)
-            rest = batch(everyone, [rest_pattern] * m, [rest_pattern] * m, np.full((m, nb), self.start), True)
-            states = {rest_pattern: rest}
+            rest, rest_margin = batch(everyone, [rest_pattern] * m, [rest_pattern] * m,
+                                      np.full((m, nb), self.start), True)
+            states = {rest_pattern: (rest, rest_margin)}
             if lows:
                 design = np.tile(everyone, len(lows))
-                ends = batch(design, [rest_pattern] * design.size, [p for p in lows for _ in everyone],
-                             np.tile(rest, (len(lows), 1)))
-                states.update({p: ends[j * m:(j + 1) * m] for j, p in enumerate(lows)})
+                ends, on_the_way = batch(design, [rest_pattern] * design.size, [p for p in lows for _ in everyone],
+                                         np.tile(rest, (len(lows), 1)))
+                states.update({p: (ends[j * m:(j + 1) * m], on_the_way[j * m:(j + 1) * m])
+                               for j, p in enumerate(lows)})
             design = np.tile(everyone, len(mine))
             start = [sc.low for _, sc in mine for _ in everyone]
             end = [sc.high for _, sc in mine for _ in everyone]
-            w_low = np.concatenate([states[sc.low] for _, sc in mine])
-            w_high = batch(design, start, end, w_low)
+            w_low = np.concatenate([states[sc.low][0] for _, sc in mine])
+            low_margin = np.concatenate([states[sc.low][1] for _, sc in mine])
+            w_high, high_margin = batch(design, start, end, w_low)
             cols = list(context.units)
-            ends_margin = []
-            for w_end, patterns in ((w_low, start), (w_high, end)):
-                value = np.full(design.size, np.nan)
-                found = np.flatnonzero(np.all(np.isfinite(w_end), axis=1))
-                if found.size:
-                    p = np.array([models.index[patterns[r]] for r in found], dtype=int)
-                    f, jac = models(w_end[found], p)
-                    db = context.bias(theta[design[found]], w_end[found])[1]
-                    value[found] = _smallest_eigenvalue(jac - db[..., :, None] * np.eye(nb))
-                ends_margin.append(value)
             force = np.fmax(np.abs(context.bias(theta[design], w_low)[0]).max(axis=1),
                             np.abs(context.bias(theta[design], w_high)[0]).max(axis=1))
             for j, (i, sc) in enumerate(mine):
@@ -470,7 +495,7 @@ class InnerModel:
                 stroke[:, i] = w_high[rows, k] - w_low[rows, k]
                 low[:, i, cols] = w_low[rows]
                 high[:, i, cols] = w_high[rows]
-                margin[:, i] = np.fmin(ends_margin[0][rows], ends_margin[1][rows])
+                margin[:, i] = np.fmin(low_margin[rows], high_margin[rows])
                 bias_force[:, i] = force[rows]
         return Evaluation(stroke, low, high, margin, bias_force, snapped, failed / np.maximum(ramps, 1))
 

@@ -120,13 +120,15 @@ class Optimum:
 
 
 def maximise_min_stroke(model: InnerModel, bounds: Sequence[tuple[float, float]], limits: Constraints,
-                        guesses: Sequence[np.ndarray] = (), local: bool = False) -> Optimum:
+                        guesses: Sequence[np.ndarray] = (), local: bool = False, population: int = POPULATION,
+                        generations: int = GENERATIONS) -> Optimum:
     """The parameters in ``bounds`` with the largest smallest stroke on ``model`` (see the module text).
 
     ``guesses`` (parameter vectors) join the initial population: a previous design
     gives the search a feasible start.  ``local``: only polish the best guess (the model
     was re-anchored near it: its optimum is close; a guess just outside a constraint
-    on the new model is walked back by the penalty).
+    on the new model is walked back by the penalty).  ``population`` (per parameter) and
+    ``generations``: the differential evolution's effort.
     """
     lo = np.array([b[0] for b in bounds], dtype=float)
     hi = np.array([b[1] for b in bounds], dtype=float)
@@ -147,7 +149,7 @@ def maximise_min_stroke(model: InnerModel, bounds: Sequence[tuple[float, float]]
     if local and best is not None:
         x, _ = direct_search(objective, best, float(values.min()), step=LOCAL_STEP)
     else:
-        result = differential_evolution(objective, unit_box, popsize=POPULATION, maxiter=GENERATIONS, tol=1e-4,
+        result = differential_evolution(objective, unit_box, popsize=population, maxiter=generations, tol=1e-4,
                                         seed=SEED, polish=False, vectorized=True, updating="deferred",
                                         init="sobol", x0=best)
         x, _ = direct_search(objective, result.x, result.fun)

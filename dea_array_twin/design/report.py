@@ -148,6 +148,10 @@ def summary(result: BiasDesign) -> list[str]:
               f"{aware.max_bias_force:.4g} N; total {result.seconds:.0f} s."]
     if aware.any_hysteresis:
         lines.append("Warning: some stroke of the array-aware design does not return to its low state.")
+    if not result.margin_kept:
+        lines.append(f"Warning: the full solves of the array-aware design go below the margin K at a path point "
+                     f"({aware.min_margin:.4g} < {s.margin:.4g} N/m) where the inner model kept it: see "
+                     "`margin_N_per_m` in the strokes CSV.")
     if aware.any_snap and not s.allow_snap:
         lines.append("Warning: the full solves of the array-aware design snap through where the inner model saw no "
                      "snap (not allowed without --allow-snap): see `snapped` in the strokes CSV.")

@@ -12,7 +12,8 @@ from the flat state, so the results do not depend on where they ran
 * :class:`PathTask` (:func:`run_path`): full quasi-static biased solves of a design along
   the scenario paths that start from one low voltage pattern (:mod:`.scenarios`): the
   0 V rest state, the low pattern, then for each stroking unit its high pattern and
-  back.  The verification of a design, and the anchors of the next inner model.
+  back, every voltage change in :data:`PATH_LEVELS` steps with the stability margin
+  checked at each.  The verification of a design, and the anchors of the next inner model.
 """
 
 from __future__ import annotations
@@ -31,6 +32,10 @@ from .scenarios import Pattern
 #: A return to the low pattern that lands further than this (fraction of D) from the low
 #: state marks hysteresis (a snap on the way up that did not snap back).
 RETURN_TOL = 1e-4
+#: Every voltage change of a scenario path stops at the voltage fractions j / PATH_LEVELS
+#: (j = 1 .. PATH_LEVELS) of the change: the path points where the stability margin is
+#: checked, here and in the inner model (:mod:`.inner`, its largest voltage step).
+PATH_LEVELS = 4
 
 
 @dataclass(frozen=True)
@@ -151,8 +156,12 @@ class State:
     margin : float
         Smallest eigenvalue of the biased units' ``dF/dw - diag(dB/dw)`` [N/m]: the
         stability margin (for one unit ``dF/dw - dB/dw``).
+    path_margin : float
+        The smallest margin on the way to the state [N/m]: at the state the voltage
+        change started from, at each of its :data:`PATH_LEVELS` path points, the state's own.
     stable : bool
-        The twin's stability check (the whole tangent positive definite).
+        The twin's stability check (the whole tangent positive definite) at the state and
+        at every path point on the way.
     snaps : tuple of str
         Snap-throughs on the way to the state.
     """
@@ -161,6 +170,7 @@ class State:
     bias_force: np.ndarray
     capacitance: np.ndarray
     margin: float
+    path_margin: float
     stable: bool
     snaps: tuple
 
@@ -202,20 +212,36 @@ def margin(twin: ArrayTwin, res: TwinResult) -> float:
     return float(np.linalg.eigvalsh(0.5 * (s + s.T)).min())
 
 
-def _state(twin: ArrayTwin, res: TwinResult) -> State:
-    return State(res.position.copy(), res.bias_force.copy(), res.capacitance.copy(), margin(twin, res),
-                 bool(res.stable), tuple(s.describe() for s in res.snaps))
+def change_voltage(twin: ArrayTwin, since: State, before: np.ndarray, after: np.ndarray) -> State:
+    """The state after the voltages go from ``before`` to ``after`` [V] in :data:`PATH_LEVELS` full solves.
+
+    ``since`` is the twin's present state (at ``before``); the result's ``path_margin`` and
+    ``stable`` cover it and every path point, its ``snaps`` every snap-through on the way."""
+    margins, snaps, stable = [since.margin], [], since.stable
+    position, bias_force, capacitance = since.position, since.bias_force, since.capacitance
+    if np.any(after != before):
+        for u in np.arange(1, PATH_LEVELS + 1) / PATH_LEVELS:
+            res = twin.solve(voltage=before + u * (after - before), check_stability=True)
+            margins.append(margin(twin, res))
+            snaps += [s.describe() for s in res.snaps]
+            stable = stable and bool(res.stable)
+            position, bias_force, capacitance = res.position.copy(), res.bias_force.copy(), res.capacitance.copy()
+    return State(position, bias_force, capacitance, margins[-1], float(min(margins)), stable, tuple(snaps))
 
 
 def run_path(task: PathTask) -> PathResult:
-    """Solve a :class:`PathTask` with full quasi-static biased solves (stability checked at every state)."""
+    """Solve a :class:`PathTask` with full quasi-static biased solves (stability checked at every path point)."""
     twin = ArrayTwin(task.config)
     low_voltage = task.voltage * np.array(task.low, dtype=float)
+    zero = np.zeros_like(low_voltage)
     tol = RETURN_TOL * twin.config.scaled("electrode_diameter")
 
     def reach_low() -> State:
-        rest_state(twin, 0.0, task.start)
-        return _state(twin, twin.solve(voltage=low_voltage, check_stability=True))
+        res = rest_state(twin, 0.0, task.start)
+        at_rest = margin(twin, res)  # the release from the held start is assembly, not a path: no snaps counted
+        rest = State(res.position.copy(), res.bias_force.copy(), res.capacitance.copy(), at_rest, at_rest,
+                     bool(res.stable), ())
+        return change_voltage(twin, rest, zero, low_voltage)
 
     try:
         low = reach_low()
@@ -228,7 +254,7 @@ def run_path(task: PathTask) -> PathResult:
         voltage = low_voltage.copy()
         voltage[k] = task.voltage
         try:
-            high.append(_state(twin, twin.solve(voltage=voltage, check_stability=True)))
+            high.append(change_voltage(twin, low, low_voltage, voltage))
             errors.append("")
             back = twin.solve(voltage=low_voltage, check_stability=False)
             hysteresis.append(bool(np.abs(back.position - low.position).max() > tol))

@@ -5,10 +5,13 @@ import json
 
 import pytest
 import yaml
-from conftest import COARSE
+from conftest import COARSE, DOME
 
+from dea_array_twin import ArrayTwin
 from dea_array_twin.cli.main import main
 from dea_array_twin.configfile import load_config
+from dea_array_twin.design import optimise
+from dea_array_twin.model.response import rest_state
 
 CIRCULAR = {"layout": "circular", "frame_radius": 0.025, **COARSE}
 
@@ -40,6 +43,41 @@ def test_design_bias_writes_a_config_that_stroke_solves_to_the_csv_stroke(tmp_pa
     assert stroke == pytest.approx(float(aware["stroke_m"]), rel=1e-6)
     assert float(aware["stroke_m"]) == pytest.approx(float(aware["predicted_stroke_m"]), rel=0.01)
     assert curve["stable"] == [True, True]
+
+
+def test_lbs_plus_nbs_on_a_steep_dome_snaps_in_the_full_solves_exit_1_without_allow_snap_0_with_it(
+        tmp_path, monkeypatch, capsys):
+    """An LBS in parallel with the dome's table, designed on the circular unit.
+
+    The full solves of the design snap through from 0 V to V (a fold the inner model's
+    load steps stepped over): without ``--allow-snap`` the command warns and exits 1;
+    with it, it exits 0 and reports the snap.  The design it writes, read back by the
+    config loader and solved with ``ArrayTwin.solve`` from its rest state, gives the
+    CSV's stroke and its snap.  The optimiser's effort is cut (8 candidates per parameter,
+    8 generations) to keep the two designs cheap: what is checked is the full solves."""
+    monkeypatch.setattr(optimise, "POPULATION", 8)
+    monkeypatch.setattr(optimise, "GENERATIONS", 8)
+    config = tmp_path / "dome.yaml"
+    config.write_text(yaml.safe_dump({**CIRCULAR, "unit_modes": ["biased"], "bias": [DOME]}))
+    argv = ["design-bias", str(config), "--bias", "lbs+nbs", "--voltage", "2730", "--out"]
+    assert main([*argv, str(tmp_path / "strict")]) == 1
+    strict = capsys.readouterr().out
+    assert "| array-aware | the array, every scenario |" in strict and "snap-through not allowed" in strict
+    assert "Warning: the full solves of the array-aware design snap through" in strict
+    assert main([*argv, str(tmp_path / "snap"), "--allow-snap"]) == 0
+    allowed = capsys.readouterr().out
+    assert "snap-through allowed" in allowed and "snap through where the inner model saw no snap" not in allowed
+    assert "does not return to its low state" in allowed  # the dome is bistable: once snapped up it stays
+    aware = [r for r in csv.DictReader(open(tmp_path / "snap" / "strokes.csv")) if r["design"] == "aware"]
+    assert len(aware) == 1 and aware[0]["snapped"] == "True" and aware[0]["stable"] == "True"
+    text = (tmp_path / "snap" / "design.yaml").read_text()
+    start = float(text.split("--start ")[1].split()[0])
+    twin = ArrayTwin(load_config(tmp_path / "snap" / "design.yaml"))
+    low = rest_state(twin, start=start)
+    high = twin.solve(voltage=[2730.0], check_stability=True)
+    assert low.stable and high.stable and not low.snaps and high.snaps
+    assert high.position[0] - low.position[0] == pytest.approx(float(aware[0]["stroke_m"]), rel=1e-6)
+    assert float(aware[0]["stroke_m"]) == pytest.approx(float(aware[0]["predicted_stroke_m"]), rel=0.01)
 
 
 @pytest.mark.parametrize("args, message", [

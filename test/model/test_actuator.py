@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import COARSE
+from conftest import COARSE, DOME
 from scipy.optimize import brentq
 
 from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
@@ -21,12 +21,9 @@ from dea_array_twin.model.response import rest_state
 CIRCULAR = {"layout": "circular", "frame_radius": 0.025}
 #: Newton tolerances 100x tighter than the default, for the 1e-6 comparisons.
 TIGHT = NewtonSettings(residual_tol=1e-10, increment_tol=1e-9)
-#: A bistable dome on the circular unit (a table: B = 0.2035 + 0.08 tanh((w - 7 mm) / 1 mm) N):
-#: stable near 5 mm at 0 V; a voltage ramp takes that branch past a limit point near
-#: 2140 V and the unit snaps to about 10 mm.
-DOME_W = np.linspace(0.0, 0.016, 33)
-DOME = {"type": "table", "position": DOME_W.tolist(),
-        "force": (0.2035 + 0.08 * np.tanh((DOME_W - 0.007) / 0.001)).tolist()}
+#: DOME (test/conftest.py), the bistable dome on the circular unit: stable near 5 mm at
+#: 0 V; a voltage ramp takes that branch past a limit point near 2140 V and the unit snaps
+#: to about 10 mm.
 NBS = {"type": "linear", "stiffness": -30.0, "free_position": 0.0007}
 
 
