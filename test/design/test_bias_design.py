@@ -201,3 +201,16 @@ def test_a_margin_violated_only_at_an_intermediate_voltage_is_seen_by_the_full_s
                for line in summary(between))
     below = design(0.5 * high.path_margin)
     assert below.accepted and below.aware.verification.min_margin == pytest.approx(high.path_margin, rel=0.05)
+
+
+def test_the_design_on_a_dask_cluster_equals_the_serial_one():
+    """The library on a study's Dask cluster (loopback, two worker processes): the same design and
+    strokes as in this process (every finite-element task is a fresh twin: no executor dependence)."""
+    distributed = pytest.importorskip("distributed")
+    cfg, serial = _circular("lbs")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        on_dask = design_bias(cfg, DesignSettings("lbs", VOLTAGE, grid_points=GRID), scheduler=cluster.scheduler_address)
+    np.testing.assert_array_equal(on_dask.aware.theta, serial.aware.theta)
+    np.testing.assert_array_equal(on_dask.aware.predicted, serial.aware.predicted)
+    np.testing.assert_array_equal(on_dask.single.theta, serial.single.theta)
