@@ -210,7 +210,8 @@ def test_the_design_on_a_dask_cluster_equals_the_serial_one():
     cfg, serial = _circular("lbs")
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
-        on_dask = design_bias(cfg, DesignSettings("lbs", VOLTAGE, grid_points=GRID), scheduler=cluster.scheduler_address)
+        address = cluster.scheduler_address
+        on_dask = design_bias(cfg, DesignSettings("lbs", VOLTAGE, grid_points=GRID), scheduler=address)
     np.testing.assert_array_equal(on_dask.aware.theta, serial.aware.theta)
     np.testing.assert_array_equal(on_dask.aware.predicted, serial.aware.predicted)
     np.testing.assert_array_equal(on_dask.single.theta, serial.single.theta)
