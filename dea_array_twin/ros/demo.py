@@ -16,7 +16,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from ..model.config import ConfigError
 from .node import TwinNode
-from .spin import init_ros, shutdown_signals
+from .spin import init_ros, shutdown_signals, stopped_by_signal
 from .wave_controller import WaveController
 
 
@@ -58,6 +58,9 @@ def run_demo(node_args: Sequence[str], duration: float) -> int:
             return 2
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception:
+            if not stopped_by_signal():
+                raise
         finally:
             for node in nodes:
                 node.destroy_node()

@@ -10,7 +10,8 @@
   handlers are installed before ``rclpy.init``, and rclpy chains to them.  gmsh, when
   it builds the twin's mesh, puts in a SIGTERM handler of its own that ends the
   process at once: the handlers are installed again once the node is built;
-* :func:`spin_node`: the executables' ``main``.
+* :func:`spin_node`: the executables' ``main``;
+* :func:`stopped_by_signal`: an rcl error after the context was shut down is the stop.
 """
 
 from __future__ import annotations
@@ -68,6 +69,17 @@ def shutdown_signals() -> Iterator[Callable[[], None]]:
             signal.signal(sig, handler)
 
 
+def stopped_by_signal() -> bool:
+    """Whether rclpy's context is shut down, e.g. by its own SIGINT/SIGTERM handler.
+
+    If the signal lands while a node is being built, before an executor exists or between
+    two waits, the next rcl call raises (RCLError: context not valid) instead of
+    ``ExternalShutdownException``: call this in an ``except Exception`` to tell that
+    normal stop from a crash (re-raise when it is False).
+    """
+    return not rclpy.ok()
+
+
 def spin_node(make_node: Callable[[], Node], name: str, args: Sequence[str] | None = None) -> None:
     """Init rclpy, build the node and spin it until Ctrl-C, SIGTERM, SIGHUP or shutdown, then clean up.
 
@@ -90,10 +102,7 @@ def spin_node(make_node: Callable[[], Node], name: str, args: Sequence[str] | No
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception:
-            # rclpy's own SIGINT/SIGTERM handler shuts the context down; if the signal lands
-            # while the node is still being built or before the executor exists, the next rcl
-            # call raises (RCLError: context not valid).  That is a normal stop, not a crash.
-            if rclpy.ok():
+            if not stopped_by_signal():
                 raise
         finally:
             if node is not None:

@@ -117,7 +117,9 @@ def test_demo_runs_the_twin_with_the_wave_controller():
             output = OutputLines(proc.stdout)
             done = output.wait_for(unit_2_up_after_unit_1, timeout=90)
             proc.send_signal(signal.SIGINT)
-            assert proc.wait(timeout=30) == 0
+            code = proc.wait(timeout=30)
+            output.wait_for(lambda lines: False, timeout=1.0)  # the last lines the pipe still holds
+            assert code == 0, f"exit code {code} after SIGINT: {output.lines[-40:]}"
         finally:
             if proc.poll() is None:
                 proc.kill()

@@ -27,3 +27,20 @@ def test_an_error_while_the_context_is_up_still_propagates():
     with pytest.raises(RuntimeError, match="broken node"):
         spin_node(broken, "spin_test", args=[])
     assert not rclpy.ok()  # and rclpy was shut down on the way out
+
+
+def test_a_signal_during_the_demos_spin_ends_it_with_exit_code_0(monkeypatch):
+    """The demo spins its own executor: a signal between two waits shuts the context down, and the
+    next wait raises an rcl error (not ExternalShutdownException); that is the stop, exit code 0."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    import dea_array_twin.ros.demo as demo
+
+    class CutBySignal(SingleThreadedExecutor):
+        def spin_once(self, timeout_sec=None):
+            rclpy.shutdown()  # what rclpy's SIGINT handler does
+            raise RuntimeError("failed to create guard_condition: the given context is not valid")
+
+    monkeypatch.setattr(demo, "SingleThreadedExecutor", CutBySignal)
+    assert demo.run_demo(["--ros-args", "-p", "update_rate:=10.0"], duration=5.0) == 0
+    assert not rclpy.ok()
