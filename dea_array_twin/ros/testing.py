@@ -258,6 +258,10 @@ class TwinHarness:
         self._pubs[kind].publish(Float64MultiArray(data=[float(v) for v in values]))
         self.sent[kind] += 1
 
+    def command_subscribers(self, kind: str) -> int:
+        """Subscriptions to ``command/<kind>`` the harness's publisher has matched (its side of discovery)."""
+        return self._pubs[kind].get_subscription_count()
+
     def send_displacement(self, values) -> None:
         """Publish a displacement command [m], one value per unit."""
         self.send("displacement", values)

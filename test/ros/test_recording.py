@@ -128,13 +128,16 @@ def test_two_twins_started_in_the_same_second_write_two_readable_bags(tmp_path):
         try:
             h.wait_for("/diagnostics", lambda m: "2 nodes named /dea_array_twin" in m.status[0].message, timeout=60)
             # Both twins report their command subscriptions (and their recorders') connected to ours:
-            # every diagnostics message of the last 2.5 s (both twins publish at 1 Hz) says so.
+            # every diagnostics message of the last 2.5 s (both twins publish at 1 Hz) says so; and our
+            # publisher has matched all four (discovery is not symmetric: a reliable message reaches
+            # only the subscriptions the publisher knows, and once a recorder missed it).
             deadline = time.monotonic() + 60
             while True:
                 now = time.monotonic()
                 recent = [diagnostic_values(m) for m, t in zip(h.messages("/diagnostics"),
                                                                 h.receive_times("/diagnostics")) if t > now - 2.5]
-                if len(recent) >= 4 and all(v.get("command_publishers_displacement", "0") != "0" for v in recent):
+                if (len(recent) >= 4 and all(v.get("command_publishers_displacement", "0") != "0" for v in recent)
+                        and h.command_subscribers("displacement") >= 4):
                     break
                 assert now < deadline, recent
                 time.sleep(0.1)
