@@ -31,7 +31,7 @@ from ..model.config import ConfigError
 from ..model.response import Schedule, Simulation, simulate, stroke
 from ..model.solver import ConvergenceError
 from ..model.twin import ArrayTwin, TwinResult
-from .argtypes import float_list
+from .argtypes import failure_exit_code, float_list
 
 
 def schedule(text: str) -> Schedule:
@@ -105,12 +105,8 @@ def run_stroke(args: argparse.Namespace) -> int:
         curve = stroke(twin, args.voltage, None if args.unit is None else args.unit - 1,
                        0.0 if args.displacement is None else args.displacement, args.start,
                        on_level=lambda v, res: _events(res, f"{v:g} V"))
-    except (ConfigError, ValueError) as exc:
-        print(f"dea-twin: error: {exc}", file=sys.stderr)
-        return 2
-    except ConvergenceError as exc:
-        print(f"dea-twin: solver failed: {exc}", file=sys.stderr)
-        return 1
+    except (ConfigError, ValueError, ConvergenceError) as exc:
+        return failure_exit_code(exc)
     if args.json:
         print(json.dumps({"voltage": curve.voltage.tolist(), "position": curve.position.tolist(),
                           "force": curve.force.tolist(), "capacitance": curve.capacitance.tolist(),
@@ -179,12 +175,8 @@ def run_simulate(args: argparse.Namespace) -> int:
 
             sim = simulate(twin, args.voltage, args.force, args.duration, args.dt,
                            0.0 if args.displacement is None else args.displacement, args.start, on_step)
-    except (ConfigError, ValueError) as exc:
-        print(f"dea-twin: error: {exc}", file=sys.stderr)
-        return 2
-    except ConvergenceError as exc:
-        print(f"dea-twin: solver failed: {exc}", file=sys.stderr)
-        return 1
+    except (ConfigError, ValueError, ConvergenceError) as exc:
+        return failure_exit_code(exc)
     if args.json:
         print(json.dumps({"time": sim.time.tolist(), "position": sim.position.tolist(),
                           "velocity": sim.velocity.tolist(), "force": sim.force.tolist(),

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from typing import Callable
+
+from ..model.config import ConfigError
 
 
 def float_list(min_count: int = 1, count: int | None = None,
@@ -33,3 +36,13 @@ def add_topic_map(parser: argparse.ArgumentParser, example: str) -> None:
     """The ``--topic-map OLD=NEW ...`` option of the commands that read bags."""
     parser.add_argument("--topic-map", nargs="+", action="extend", default=[], metavar="OLD=NEW",
                         help=f"use recorded topic OLD as NEW (e.g. {example})")
+
+
+def failure_exit_code(exc: Exception) -> int:
+    """Print a sub-command's failure in one line and give its exit code: 2 for a bad input
+    (``ConfigError``, ``ValueError``), 1 for a solver that did not converge."""
+    if isinstance(exc, (ConfigError, ValueError)):
+        print(f"dea-twin: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"dea-twin: solver failed: {exc}", file=sys.stderr)
+    return 1

@@ -20,7 +20,7 @@ from ..model.config import ArrayConfig, ConfigError
 from ..model.membrane import FREE
 from ..model.solver import ConvergenceError
 from ..model.twin import ArrayTwin, TwinResult
-from .argtypes import float_list, word_list
+from .argtypes import failure_exit_code, float_list, word_list
 
 
 def _neighbours(text: str) -> str | float:
@@ -218,12 +218,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             else:
                 for key, value in _solve_dict(res).items():
                     print(f"{key}: {value}")
-    except (ConfigError, ValueError) as exc:
-        print(f"dea-twin: error: {exc}", file=sys.stderr)
-        return 2
-    except ConvergenceError as exc:
-        print(f"dea-twin: solver failed: {exc}", file=sys.stderr)
-        return 1
+    except (ConfigError, ValueError, ConvergenceError) as exc:
+        return failure_exit_code(exc)
     return 0
 
 
