@@ -109,6 +109,9 @@ class TwinNode(Node):
         super().__init__("dea_array_twin", **kwargs)
         cfg = self._declare_config()
         twin = self._make_twin(cfg)
+        # Compiled kernels now (Ctrl-C here ends the start): a first update that compiles (~10 s after an
+        # install) would outlast the node's stop and leave the solver thread compiling at the exit.
+        twin.warm_up()
         #: The mesh and operators (read-only; the marker and the log use them).  The twin's
         #: state belongs to the solver thread.
         self.model = twin.model
@@ -356,10 +359,9 @@ class TwinNode(Node):
     def _publish_outputs(self, res: TwinResult, stamp_ns: int | None = None) -> None:
         """Force, capacitance and unit states of ``res`` (called on the solver thread).
 
-        ``unit_states`` is stamped ``stamp_ns`` (a dynamic step: its tick), else now."""
+        ``unit_states`` is stamped ``stamp_ns`` (a dynamic step: its tick), else now.  A publish that
+        fails because the context was shut down (Ctrl-C or SIGTERM while it ran) is the stop, not an error."""
         stamp = self.get_clock().now().to_msg() if stamp_ns is None else Time(nanoseconds=stamp_ns).to_msg()
-        self.pub_force.publish(unit_array(res.force))
-        self.pub_cap.publish(unit_array(res.capacitance))
         states = JointState()
         states.header.stamp = stamp
         states.header.frame_id = self.frame_id
@@ -367,7 +369,14 @@ class TwinNode(Node):
         states.position = [float(v) for v in res.position]
         states.velocity = [float(v) for v in res.velocity]
         states.effort = [float(v) for v in res.force]
-        self.pub_states.publish(states)
+        try:
+            self.pub_force.publish(unit_array(res.force))
+            self.pub_cap.publish(unit_array(res.capacitance))
+            self.pub_states.publish(states)
+        except Exception:
+            if self.context.ok():
+                raise
+            return
         if self.fe_check is not None:
             self.fe_check.post(res)
 

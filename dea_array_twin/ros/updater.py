@@ -227,6 +227,8 @@ class TwinUpdater:
             self._cond.notify()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(timeout)
+            if self._thread.is_alive():
+                self._log("stop", f"the solver thread is still busy {timeout} s after the stop; leaving it")
 
     def stats(self) -> UpdaterStats:
         """Counters, rates and solve-time percentiles (see :class:`UpdaterStats`)."""

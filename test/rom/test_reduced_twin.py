@@ -195,3 +195,16 @@ def test_a_resync_restarts_the_reduced_state_from_the_fe_and_a_cancel_keeps_the_
     assert twin.last is None and twin.updates == 2 and first.fallback == ""
     again = twin.solve(d, v)
     np.testing.assert_allclose(again.force, res.force, rtol=1e-6, atol=1e-9)
+
+
+def test_warm_up_leaves_the_reduced_twin_as_a_new_one(cfg, rom):
+    """warm_up solves (reduced and FE) to compile its kernels, then resets: the next answer and the
+    counters are those of a twin that never solved."""
+    fresh, warmed = ReducedTwin(cfg, rom), ReducedTwin(cfg, rom)
+    warmed.warm_up()
+    assert (warmed.updates, warmed.evaluations, warmed.refreshes, sum(warmed.fallbacks.values())) == (0, 0, 0, 0)
+    command = ([0.0, 0.006, 0.0], [0.0, 1500.0, 0.0])
+    a, b = fresh.solve(*command), warmed.solve(*command)
+    np.testing.assert_array_equal(a.force, b.force)
+    np.testing.assert_array_equal(a.capacitance, b.capacitance)
+    assert (warmed.updates, warmed.evaluations) == (fresh.updates, fresh.evaluations)

@@ -69,6 +69,20 @@ def test_bad_commands_are_rejected_counted_and_change_nothing(kind, values, reas
         assert all(np.all(np.isfinite(m.data)) for m in h.messages("force"))
 
 
+def test_a_publish_cut_off_by_the_context_shutdown_is_the_stop_not_a_solver_error():
+    """Ctrl-C and SIGTERM shut the context down while the solver thread may be publishing: that publish
+    ends quietly instead of stopping the thread with a warning at every Ctrl-C."""
+    with TwinHarness(parameters={"update_rate": 20.0, "marker_rate": 0.0}) as h:
+        h.wait_for("force", timeout=20)
+        node = h.twin_node
+        node.updater.stop()
+        n = len(h.messages("force"))
+        node._publish_outputs(node.result)  # context up: published
+        h.wait_for("force", after=n, timeout=10)
+        h.context.try_shutdown()
+        node._publish_outputs(node.result)  # context down: rcl refuses the publish, which is the stop
+
+
 def test_reset_returns_to_the_flat_membrane():
     with TwinHarness(parameters={"update_rate": 50.0}) as h:
         h.send_displacement([0.004, 0.008, 0.0])
