@@ -136,17 +136,18 @@ class IndenterBorder:
             x[d] += step
 
     def _blocks(self, fact) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``Y = K_ff^-1 K_fw`` (n_f, n_b), ``K_wf`` (n_b, n_f) and the membrane ``K_ww``, per factorisation."""
+        """``Y^T = (K_ff^-1 K_fw)^T`` and ``K_wf`` (both n_b, n_f: a row per unit) and the condensed
+        ``K_ww - K_wf Y``, per factorisation."""
         if self._cache is None or self._cache[0] is not fact:
             n_p = fact.prescribed.size
-            y = np.empty((fact.free.size, self.units.size))
+            yt = np.empty((self.units.size, fact.free.size))
             for i, idx in enumerate(self.groups):
                 unit_move = np.zeros(n_p)
                 unit_move[idx] = 1.0
-                y[:, i] = -fact.predict(unit_move, [idx])
+                yt[i] = -fact.predict(unit_move, [idx])
             kwf = np.vstack([fact.coupling(idx) for idx in self.groups])
             kww = fact.disk_stiffness[np.ix_(self.units, self.units)]
-            self._cache = (fact, y, kwf, kww)
+            self._cache = (fact, yt, kwf, kww - kwf @ yt.T)
         return self._cache[1:]
 
     def membrane_stiffness(self, fact) -> np.ndarray:
@@ -154,15 +155,16 @@ class IndenterBorder:
 
         Symmetric (the membrane force derives from its energy); its diagonal is the slope of
         a unit's driven force curve with the other disks held, the rest the coupling."""
-        y, kwf, kww = self._blocks(fact)
-        return kww - kwf @ y
+        return self._blocks(fact)[2].copy()
 
-    def schur(self, fact, w: np.ndarray, static: bool = False) -> np.ndarray:
-        """``S = K_ww - K_wf K_ff^-1 K_fw - dG/dw`` at heights ``w`` (``static``: without inertial terms)."""
+    def schur(self, fact, w: np.ndarray, static: bool = False, t: float | None = None) -> np.ndarray:
+        """``S = K_ww - K_wf K_ff^-1 K_fw - dG/dw`` at heights ``w`` (``static``: without inertial terms)
+        and path fraction ``t`` (default: the current one)."""
         if static:
             slope = [self.load.static_slope(k, wk) for k, wk in zip(self.units, w)]
         else:
-            slope = [self.load(k, wk, self.t)[1] for k, wk in zip(self.units, w)]
+            t = self.t if t is None else t
+            slope = [self.load(k, wk, t)[1] for k, wk in zip(self.units, w)]
         return self.membrane_stiffness(fact) - np.diag(slope)
 
     def direction(self, fact, r_f: np.ndarray, r_w: np.ndarray, x: np.ndarray,
@@ -173,22 +175,28 @@ class IndenterBorder:
         indenters' loads changed: a force command, a bias, a time step) the ``K_ff`` solve
         is skipped: the step is then the linear predictor ``dw = -S^-1 R_w, dx_f = -Y dw``.
         """
-        y, kwf, _ = self._blocks(fact)
-        self.skipped_solve = np.abs(r_f).max(initial=0.0) <= balanced
-        z = np.zeros_like(r_f) if self.skipped_solve else fact.solve(r_f)
+        yt, kwf, _ = self._blocks(fact)
+        self.skipped_solve = max(r_f.max(initial=0.0), -r_f.min(initial=0.0)) <= balanced
+        rhs = -r_w
+        if not self.skipped_solve:
+            z = fact.solve(r_f)
+            rhs = rhs + np.sum(kwf * z, axis=1)  # row sums, not BLAS: slow under load (see solver._norm)
         try:
-            dw = np.linalg.solve(self.schur(fact, self.heights(x)), -r_w + kwf @ z)
+            dw = np.linalg.solve(self.schur(fact, self.heights(x)), rhs)
         except (np.linalg.LinAlgError, BiasRangeError):
             return None
         if self.first_dw is None:
             self.first_dw = dw
-        return -z - y @ dw, dw
+        dx = np.zeros(r_f.size) if self.skipped_solve else -z
+        for row, step in zip(yt, dw):
+            dx -= step * row
+        return dx, dw
 
-    def negative_eigenvalues(self, fact, x: np.ndarray, static: bool = True) -> int:
-        """Negative eigenvalues of ``S`` at ``x`` (``static``: without inertial terms).
+    def negative_eigenvalues(self, fact, x: np.ndarray, static: bool = True, t: float | None = None) -> int:
+        """Negative eigenvalues of ``S`` at ``x`` (``static``: without inertial terms; at path fraction ``t``).
 
         Add ``K_ff``'s negative pivots for the inertia of the bordered tangent."""
-        return int(np.count_nonzero(np.linalg.eigvalsh(self.schur(fact, self.heights(x), static)) < 0))
+        return int(np.count_nonzero(np.linalg.eigvalsh(self.schur(fact, self.heights(x), static, t)) < 0))
 
     def without(self, unit: int) -> "IndenterBorder | None":
         """The same border without ``unit`` (held as driven), or None if it was the only one."""
@@ -199,14 +207,16 @@ class IndenterBorder:
                               [g for g, k in zip(self.groups, keep) if k], self.load)
 
 
-def negative_eigenvalues(fact, x: np.ndarray, border: IndenterBorder | None, static: bool = True) -> int:
+def negative_eigenvalues(fact, x: np.ndarray, border: IndenterBorder | None, static: bool = True,
+                         t: float | None = None) -> int:
     """Negative eigenvalues of the tangent at ``x``: ``K_ff``'s negative pivots plus the border's.
 
     Haynsworth: ``In(K) = In(K_ff) + In(S)``.  ``static``: the border without inertial
-    terms (the stability of the configuration).  -1 if the pivots' inertia is unknown.
+    terms (the stability of the configuration); ``t``: its path fraction (default: the
+    current one).  -1 if the pivots' inertia is unknown.
     """
     if fact.negative_pivots < 0:
         return -1
     if border is None:
         return fact.negative_pivots
-    return fact.negative_pivots + border.negative_eigenvalues(fact, x, static)
+    return fact.negative_pivots + border.negative_eigenvalues(fact, x, static, t)

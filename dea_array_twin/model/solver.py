@@ -20,6 +20,10 @@ reduce it.  The solver
   extrapolation ``x_f + (s + s^2) T dp - s^2 dx_f`` (``T dp`` the tangent response):
   along a smooth command path (a curve, a sine, a reversal) this leaves a much
   smaller residual than the tangent of an older state;
+* when only biased units' loads change (a force command, a Newmark step) and the solve
+  continues the last one, starts the heights and the free dofs on the quadratic through
+  the last three states (:class:`PathRecord`); a Newmark step first solves the heights'
+  own equation with the membrane force extrapolated the same way (:meth:`EquilibriumSolver._heights_step`);
 * may reuse the last factorisation for several iterations (modified Newton) and
   refactors when the residual falls by less than ``contraction`` per iteration;
 * converges when the residual is below ``residual_tol * force_scale`` and the
@@ -38,12 +42,14 @@ unit (snap-through) is detected and landed on the stable branch it jumps to
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
+from .bias import BiasRangeError
 from .indenters import IndenterBorder, IndenterLoad, negative_eigenvalues
 from .kernels import internal_forces, tangent_values
 from .linsolve import BACKENDS, Factoriser, LDLFactor, factoriser
@@ -206,6 +212,89 @@ class Factorisation:
         return out
 
 
+@dataclass(frozen=True)
+class PathRecord:
+    """What the last solve did: what the continuation predictors of the next one extrapolate.
+
+    Attributes
+    ----------
+    end : ndarray
+        The converged positions it ended at.
+    dx_f, dp : ndarray
+        Its change of the free and of the prescribed dofs.
+    free : ndarray
+        Its free dofs.
+    voltage : ndarray
+        The voltage it ended at [V].
+    heights_only : bool
+        Whether only the biased units' loads changed along it (no voltage, driven
+        displacement or frame change): its ``dx_f`` is then the membrane's response to ``dw``.
+    load_change : ndarray or None
+        Its quasi-static change of the biased units' loads [N] (None: not a loads-only solve).
+    units : ndarray or None
+        The biased units in contact along it.
+    dw : ndarray or None
+        Their height change [m].
+    membrane_force : ndarray or None
+        Their membrane forces ``F_k`` at the end [N].
+    force_change : ndarray or None
+        Their change along this solve [N] (None: the start's forces are not known).
+    before : PathRecord or None
+        The heights-only solve that ended where this heights-only one started (its own
+        ``before`` dropped): the third point of the quadratic continuation.
+    """
+
+    end: np.ndarray
+    dx_f: np.ndarray
+    dp: np.ndarray
+    free: np.ndarray
+    voltage: np.ndarray
+    heights_only: bool = False
+    load_change: np.ndarray | None = None
+    units: np.ndarray | None = None
+    dw: np.ndarray | None = None
+    membrane_force: np.ndarray | None = None
+    force_change: np.ndarray | None = None
+    before: PathRecord | None = None
+
+    def continuation(self, scale: float, ratio: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """``(dx_f, dw)``: the change of the free dofs and heights at ``scale`` times this path's change.
+
+        :func:`_extrapolate` through this path's and :attr:`before`'s changes (``before``'s
+        change being ``ratio`` times this one's; None: the secant ``s dx_n``).
+        """
+        before = self.before if ratio is not None else None
+        return (_extrapolate(scale, ratio, self.dx_f, before.dx_f if before else None),
+                _extrapolate(scale, ratio, self.dw, before.dw if before else None))
+
+    def continues(self, x: np.ndarray, free: np.ndarray, voltage: np.ndarray) -> bool:
+        """Whether a solve from ``x`` with these ``free`` dofs at ``voltage`` starts where this one ended."""
+        return ((self.end is x or np.array_equal(self.end, x)) and np.array_equal(self.free, free)
+                and np.array_equal(self.voltage, voltage))
+
+
+def _extrapolate(scale: float, ratio: float | None, last: np.ndarray, before: np.ndarray | None,
+                 slope: bool = False) -> np.ndarray:
+    """Change of a quantity at ``scale`` times the last path's change ``last``, continuing its path.
+
+    With the path parameter ``lambda`` running over ``[-1, 0]`` along the last solve and
+    over ``[-1 - a, -1]`` along the one before (changing by ``before``, ``a = ratio`` times
+    the last one's change of the commands), the quadratic through the three states is, in
+    Newton's form,
+
+        q(lambda) - q_n = lambda dq_n + lambda (lambda + 1) D2,
+        D2 = (dq_n - dq_{n-1} / a) / (1 + a),
+
+    third-order accurate along a smooth path (the secant ``lambda dq_n`` alone: second
+    order), and exact for a reversal (``lambda = -1``).  ``ratio`` None: the secant.
+    ``slope``: ``dq / dlambda`` at ``scale`` instead.
+    """
+    if ratio is None:
+        return last if slope else scale * last
+    c = ((2.0 * scale + 1.0) if slope else scale * (scale + 1.0)) / (1.0 + ratio)
+    return ((1.0 if slope else scale) + c) * last - (c / ratio) * before
+
+
 @dataclass
 class SolveStats:
     """What one solve did."""
@@ -238,9 +327,8 @@ class EquilibriumSolver:
         self.factorisation: Factorisation | None = None
         self._disk_groups: dict[tuple[str, ...], list[np.ndarray]] = {}
         self._last_border: tuple | None = None  # (modes, IndenterBorder)
-        #: (end state, its free and prescribed change, free, voltage, biased units' load change
-        #: or None, their height change): what the continuation predictors extrapolate.
-        self._last_path: tuple | None = None
+        #: What the continuation predictors extrapolate.
+        self._last_path: PathRecord | None = None
 
     def _groups(self, modes: tuple[str, ...]) -> list[np.ndarray]:
         """Index sets into the prescribed dofs of each driven or biased disk's z dofs (rigid moves)."""
@@ -384,7 +472,6 @@ class EquilibriumSolver:
         border = self._border(modes, prescribed, load) if biased else None
         stats = SolveStats()
         v0, v1 = np.asarray(start_voltage, float), np.asarray(voltage, float)
-        x = x.copy()
         # With a slip table (eq. 11) the frame of ``x`` may not be where the path starts
         # (after a reset to the gamma = 1 flat state, or when the driven units change):
         # that lag is blended out along the path, so step cuts also shorten a frame jump.
@@ -394,10 +481,16 @@ class EquilibriumSolver:
         fact = self.factorisation
         if border is not None:
             border.begin(0.0)
-        if fact is not None and np.array_equal(fact.free, free):
-            start_stable = negative_eigenvalues(fact, x, border, static=False) == 0
-        else:
-            start_stable = fact is None or fact.negative_pivots == 0
+        same_free, old, x_start = fact is not None and np.array_equal(fact.free, free), fact, x
+
+        @functools.cache
+        def start_stable() -> bool:
+            """Whether the start state is a stable one (asked only when a step lands on an unstable state)."""
+            if same_free:
+                return negative_eigenvalues(old, x_start, border, False, 0.0) == 0
+            return old is None or old.negative_pivots == 0
+
+        if not same_free:
             # No tangent of this free set yet (a fresh twin, new unit modes): one at the
             # start state gives the linear predictor of the first step.
             fact = self._factorise(self._tangent(x, m.maxwell(v0)), free, prescribed)
@@ -405,13 +498,15 @@ class EquilibriumSolver:
             self.factorisation = fact
         secant = (self._secant(x, free, prescribed, d0, d1, v0, v1, modes)
                   if not lag.any() and border is None else None)
-        # A quasi-static change of only the biased units' loads (force, bias): its load change.
-        loads_only = (border is not None and not guess and not lag.any() and np.array_equal(v0, v1)
-                      and np.array_equal(d0[[k for k, md in enumerate(modes) if md == DRIVEN]],
-                                         d1[[k for k, md in enumerate(modes) if md == DRIVEN]]))
+        # Only the biased units' loads change (force, bias, a time step's inertia): the heights
+        # and the free dofs following them continue the last such solve.
+        driven_units = [k for k, md in enumerate(modes) if md == DRIVEN]
+        heights_only = (border is not None and not lag.any() and np.array_equal(v0, v1)
+                        and np.array_equal(d0[driven_units], d1[driven_units]))
+        loads_only = heights_only and not guess  # quasi-static: the load change is the whole change
         load_change = border.load_change(border.heights(x), 0.0, 1.0) if loads_only else None
-        heights_secant = self._heights_secant(x, free, v0, border, load_change) if loads_only else None
-        x_start = x
+        last = self._last_path
+        continuing = last is not None and last.continues(x, free, v0)
         done, step, cuts, retries, snap_tried = 0.0, 1.0, 0, 0, -1.0
         while done < 1.0:
             t = min(1.0, done + step)
@@ -419,26 +514,30 @@ class EquilibriumSolver:
             m.apply_prescribed(trial, modes, d0 + t * (d1 - d0))
             if lag.any():
                 trial.reshape(-1, 3)[frame] += (1.0 - t) * lag
-            if guess and done == 0.0:
-                for k, w in guess.items():
-                    trial[m.disk_z_dofs(k)] = w
-            continued = t == 1.0 and done == 0.0 and heights_secant is not None
+            continuation = None
             if border is not None:
                 border.begin(t)
-                if continued:  # the last loads, continued: free dofs and heights move together
-                    scale, dx_last, dw_last = heights_secant
-                    trial[free] += scale * dx_last
-                    border.move(trial, scale * dw_last)
-                    border.predicted = scale * dw_last
+                if t == 1.0 and done == 0.0 and heights_only and continuing:
+                    continuation = (self._heights_secant(load_change) if loads_only
+                                    else self._heights_step(border, fact, border.heights(x)))
+            if guess and done == 0.0 and continuation is None:
+                for k, w in guess.items():
+                    trial[m.disk_z_dofs(k)] = w
+            if border is not None:
+                if continuation is not None:  # free dofs and heights move together
+                    dx_along, dw_along, dw = continuation
+                    trial[free] += dx_along
+                    border.move(trial, dw)
+                    border.predicted = dw
                 else:
                     border.predict(fact, trial, done)
             change = trial[prescribed] - x[prescribed]
-            if continued:  # the secant moved the free dofs with the heights already
-                for group in border.groups:
-                    change[group] = 0.0
+            if continuation is not None:  # the continuation moved the free dofs with dw_along already
+                for group, rest in zip(border.groups, dw - dw_along):
+                    change[group] = rest
             if t == 1.0 and done == 0.0 and secant is not None:  # the last solve's path, continued
                 scale, dx_last, dp_last = secant
-                if fact.state is not None and fact.state is self._last_path[0]:  # tangent at x: quadratic
+                if fact.state is not None and fact.state is self._last_path.end:  # tangent at x: quadratic
                     trial[free] += (scale + scale**2) * fact.predict(dp_last, groups) - scale**2 * dx_last
                     change = change - scale * dp_last
                 else:
@@ -489,8 +588,8 @@ class EquilibriumSolver:
             x_new, r, point, fact_used = outcome
             if check or fact_used is None:
                 fact_new = self.factorise_at(x_new, maxwell, free, prescribed, stats)
-                if (start_stable and negative_eigenvalues(fact_new, x_new, border, static=False) > 0
-                        and t - done > s.unstable_step):
+                if (t - done > s.unstable_step and negative_eigenvalues(fact_new, x_new, border, static=False) > 0
+                        and start_stable()):
                     retries += 1  # a long step onto an unstable state: retry it in halves
                     stats.step_cuts = cuts + retries  # (not a Newton failure: max_step_cuts counts those)
                     step = 0.5 * (t - done)
@@ -504,9 +603,16 @@ class EquilibriumSolver:
         stats.stability_checked = check
         if check:
             stats.negative_eigenvalues = negative_eigenvalues(fact, x, border)
-        dw = border.heights(x) - border.heights(x_start) if border is not None else None
-        self._last_path = (x, x[free] - x_start[free], x[prescribed] - x_start[prescribed], free, v1,
-                           load_change, dw)
+        record = dict(end=x, dx_f=x[free] - x_start[free], dp=x[prescribed] - x_start[prescribed], free=free,
+                      voltage=v1, heights_only=heights_only, load_change=load_change)
+        if border is not None:
+            before = None
+            if heights_only and continuing and last.heights_only and np.array_equal(last.units, border.units):
+                before = dataclasses.replace(last, before=None)
+            force = border.membrane_force(r)
+            record.update(units=border.units, dw=border.heights(x) - border.heights(x_start), membrane_force=force,
+                          before=before, force_change=force - before.membrane_force if before is not None else None)
+        self._last_path = PathRecord(**record)
         return x, r, point, stats
 
     def _jumped(self, border: IndenterBorder, x_old: np.ndarray, x_new: np.ndarray) -> bool:
@@ -528,39 +634,139 @@ class EquilibriumSolver:
         reversal (``s = -1``).
         """
         last = self._last_path
-        if (last is None or last[0] is not x and not np.array_equal(last[0], x)
-                or not np.array_equal(last[3], free) or not np.array_equal(v0, v1)
-                or not np.array_equal(last[4], v0)):
-            return None
+        if last is None or not np.array_equal(v0, v1) or not last.continues(x, free, v0):
+            return None  # (x: the caller's start state, which a twin keeps as the last end state)
         target = x.copy()
         self.model.apply_prescribed(target, modes, d1)
-        dp_new, dp = target[prescribed] - x[prescribed], last[2]
+        dp_new, dp = target[prescribed] - x[prescribed], last.dp
         norm2 = float(np.sum(dp * dp))
         if norm2 == 0.0:
             return None
         scale = float(np.sum(dp_new * dp)) / norm2
-        return (scale, last[1], dp) if abs(scale) <= 2.0 else None
+        return (scale, last.dx_f, dp) if abs(scale) <= 2.0 else None
 
-    def _heights_secant(self, x: np.ndarray, free: np.ndarray, voltage: np.ndarray, border: IndenterBorder,
-                        load_change: np.ndarray) -> tuple | None:
-        """``(s, dx_f, dw)`` when this solve continues the last one with the biased loads only.
+    def _heights_secant(self, load_change: np.ndarray) -> tuple | None:
+        """``(dx_f, dw, dw)`` when this solve continues the last one (:meth:`PathRecord.continues`) with
+        the biased loads only.
 
         As :meth:`_secant`, for a change ``dG = s dG_last`` of the biased units' loads
-        (force commands, biases) with everything else held: ``x_f + s dx_f``, ``w + s dw``
-        — exact for a reversal, second-order along a smooth command path.
+        (force commands, biases) with everything else held: the free dofs and heights
+        continue the last solve's path to ``s`` (:meth:`PathRecord.continuation`: quadratic
+        through the last two solves' states when they changed the loads along the same
+        direction, else ``x_f + s dx_f``, ``w + s dw``) — exact for a reversal, third order
+        along a smooth command path.
         """
         last = self._last_path
-        if (last is None or last[5] is None or last[0] is not x and not np.array_equal(last[0], x)
-                or not np.array_equal(last[3], free) or not np.array_equal(last[4], voltage)
-                or last[5].shape != load_change.shape):
+        if last.load_change is None or last.load_change.shape != load_change.shape:
             return None
-        norm2 = float(last[5] @ last[5])
-        if norm2 == 0.0:
+        scale = _along(load_change, last.load_change)
+        before = last.before
+        ratio = _usable(_along(before.load_change, last.load_change)
+                        if before is not None and before.load_change is not None
+                        and before.load_change.shape == last.load_change.shape else None)
+        if scale is None or not _within_reach(scale, ratio):
             return None
-        scale = float(load_change @ last[5]) / norm2
-        if abs(scale) > 2.0 or np.abs(load_change - scale * last[5]).max() > 1e-9 * np.abs(load_change).max():
+        dx_f, dw = last.continuation(scale, ratio)
+        return dx_f, dw, dw
+
+    def _heights_step(self, border: IndenterBorder, fact: Factorisation, w: np.ndarray) -> tuple | None:
+        """``(dx_f, dw_along, dw)``: the heights' step from ``w`` when only their loads change.
+
+        For a solve that changes nothing but the biased units' ``G`` (a Newmark step: the
+        inertial force depends on the step) and starts where the last solve ended
+        (:meth:`PathRecord.continues`), with the membrane forces ``F`` there:
+
+            S dw = -R_w = G(w, 1) - F,       S = K_ww - K_wf K_ff^-1 K_fw - dG/dw,
+
+        the heights' Newton step with the free dofs condensed out (no ``K_ff`` solve: the
+        influence vectors are cached).  The free dofs follow the last solves' path
+        continued to ``s = <dw, dw_last> / <dw_last, dw_last>`` (:meth:`PathRecord.continuation`,
+        which moves the heights by ``dw_along``), and the tangent's ``-Y (dw - dw_along)`` for
+        the rest: along a smooth motion this is third order where ``-Y dw`` alone, with an old
+        tangent, is first order.  None when the last solve did not change only the loads of the
+        same biased units.
+        """
+        last = self._last_path
+        if not last.heights_only or last.membrane_force is None or not np.array_equal(last.units, border.units):
             return None
-        return scale, last[1], last[6]
+        try:
+            dw = self._heights_solve(border, fact, w, last)
+        except (np.linalg.LinAlgError, BiasRangeError):
+            return None
+        scale = _along(dw, last.dw, exact=False)
+        ratio = _usable(_along(last.before.dw, last.dw) if last.before is not None else None)
+        if scale is None or not _within_reach(scale, ratio):
+            return (np.zeros(last.dx_f.size), np.zeros_like(dw), dw)
+        dx_f, dw_along = last.continuation(scale, ratio)
+        return dx_f, dw_along, dw
+
+    def _heights_solve(self, border: IndenterBorder, fact: Factorisation, w: np.ndarray,
+                       last: PathRecord) -> np.ndarray:
+        """``dw`` with ``F(w + dw) = G(w + dw)``, ``F`` the membrane force modelled from the last solves.
+
+        ``F(w + dw) = F + K dw`` with ``K`` the condensed stiffness ``K_ww - K_wf K_ff^-1 K_fw``
+        of ``fact`` (an older tangent), corrected along the last height change ``u = dw_last``
+        to the path through the last solves' forces: with ``dw = lambda u + r``,
+        ``F(w + dw) = F + dF(lambda) + K r`` (:func:`_extrapolate`: the quadratic through the last
+        three states, or the secant ``lambda dF_last``: Broyden's update of ``K``).  Newton on this
+        small system (``G`` exact, :class:`.indenters.IndenterLoad`), from ``dw = 0``, until a step
+        is below 1e-3 of ``dw`` (Newton's next one, ~1e-6 of it, is far below what the membrane's
+        Newton iterations resolve).
+        """
+        stiffness = border.membrane_stiffness(fact)
+        u = last.dw
+        norm2 = float(u @ u)
+        path = last.force_change is not None and norm2 > 0.0
+        ratio = None
+        if path and last.before is not None and last.before.force_change is not None:
+            ratio = _usable(_along(last.before.dw, u))
+        before = last.before.force_change if ratio is not None else None
+        dw = np.zeros(u.size)
+        for _ in range(4):
+            load = [border.load(k, wk, border.t) for k, wk in zip(border.units, w + dw)]
+            force, jacobian = stiffness @ dw, stiffness - np.diag([g[1] for g in load])
+            if path:
+                lam = float(dw @ u) / norm2
+                force += _extrapolate(lam, ratio, last.force_change, before) - lam * (stiffness @ u)
+                jacobian += np.outer(_extrapolate(lam, ratio, last.force_change, before, slope=True)
+                                     - stiffness @ u, u) / norm2
+            step = np.linalg.solve(jacobian, np.array([g[0] for g in load]) - last.membrane_force - force)
+            dw += step
+            if np.abs(step).max() <= 1e-3 * np.abs(dw).max():  # Newton's next step: ~(step / dw)^2 dw
+                break
+        return dw
+
+
+def _along(v: np.ndarray, u: np.ndarray, exact: bool = True) -> float | None:
+    """``s = <v, u> / <u, u>``; None when ``u = 0``, or (``exact``) when ``v`` is not ``s u`` to 1e-9."""
+    norm2 = float(u @ u)
+    if norm2 == 0.0:
+        return None
+    scale = float(v @ u) / norm2
+    if exact and np.abs(v - scale * u).max() > 1e-9 * np.abs(v).max():
+        return None
+    return scale
+
+
+def _usable(ratio: float | None) -> float | None:
+    """A ratio ``a`` of the previous path's change to the last one's that spreads the quadratic's
+    three points apart (``|a|`` and ``|1 + a|`` at least 0.2, ``|a|`` at most 10), else None."""
+    if ratio is None or not (0.2 <= abs(ratio) <= 10.0 and abs(1.0 + ratio) >= 0.2):
+        return None
+    return ratio
+
+
+#: How far a continuation may reach from the last state, in spans of the states it extrapolates.
+REACH = 3.0
+
+
+def _within_reach(scale: float, ratio: float | None) -> bool:
+    """Whether ``lambda = scale`` lies within ``REACH`` spans of the last state, the span being
+    that of the points the continuation passes through (``[-1, 0]``, or with ``ratio`` also
+    ``-1 - a``, :func:`_extrapolate`): near a turning point of a motion the last step is short
+    and the one before it may span the new one."""
+    span = 1.0 if ratio is None else max(0.0, -1.0 - ratio) - min(-1.0, -1.0 - ratio)
+    return abs(scale) <= REACH * span
 
 
 def _residual(r: np.ndarray, x: np.ndarray, free: np.ndarray, border: IndenterBorder | None) -> np.ndarray:
