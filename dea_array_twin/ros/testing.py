@@ -162,11 +162,26 @@ class TwinHarness:
                 return all(int(values[f"command_publishers_{kind}"]) >= 1 for kind in COMMAND_KINDS)
         return False
 
+    def _commands_reach_the_twin(self) -> bool:
+        """Our publishers have matched every subscription of the twin (the node's and the recorder's) to
+        each command topic, on our side: discovery is not symmetric, and a reliable message reaches only
+        the subscriptions its publisher has matched."""
+        for kind in COMMAND_KINDS:
+            if self.twin_node is not None:
+                recorder = self.twin_node.recorder is not None and not self.twin_node.recording_error
+                expected = 1 + recorder
+            else:  # another process: the subscriptions our graph knows of
+                expected = max(1, self.node.count_subscribers(self.topic(f"command/{kind}")))
+            if self.command_subscribers(kind) < expected:
+                return False
+        return True
+
     def _wait_until_connected(self, timeout: float) -> None:
-        """Block until the twin receives our commands and we receive its outputs."""
+        """Block until the twin receives our commands (on both sides of discovery) and we receive its outputs."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            if self._twin_receives_commands() and self.node.count_publishers(self.topic("force")) >= 1:
+            if (self._twin_receives_commands() and self._commands_reach_the_twin()
+                    and self.node.count_publishers(self.topic("force")) >= 1):
                 return
             if self.process is not None and self.process.poll() is not None:
                 raise RuntimeError(f"twin process exited with {self.process.returncode}: "

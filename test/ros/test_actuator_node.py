@@ -39,7 +39,10 @@ def test_dynamics_advance_one_step_of_one_over_update_rate_per_tick_of_the_simul
               "marker_rate": 0.0, "solve_budget": 0.0}
     with TwinHarness(parameters=params) as h:
         clock = h.node.create_publisher(Clock, "/clock", 10)
-        first = h.wait_for("unit_states", timeout=30)  # the quasi-static rest state, solved at start
+        # The quasi-static rest state, solved and published at start: before the harness's subscription
+        # matched, maybe (outputs are volatile), so read from the node.
+        _wait(lambda: h.twin_node.result is not None, timeout=30)
+        first = h.twin_node.result
         h.send_force(force)
         _wait(lambda: h.twin_node.updater.held("force").tolist() == force)
         for i in range(1, steps + 1):
