@@ -179,6 +179,10 @@ class SparsePattern:
         self.rows, self.cols = keys // n_dofs, keys % n_dofs
         #: Index into the nonzeros of entry ``(p, s)`` of element ``e``'s matrix, shape (ne, k, k).
         self.element_positions = self._inverse.reshape(dofs.shape[0], k, k)
+        #: ``element_positions[:, :, ::3]``, shape (ne, k, k / 3): where row ``p``'s three columns of
+        #: node ``b`` start.  Dofs ``3 i + j`` of one node are neighbours in the sorted keys, and an
+        #: element couples all three of each of its nodes, so those columns follow it.
+        self.element_block_positions = np.ascontiguousarray(self.element_positions[:, :, ::3])
         self.n_dofs = n_dofs
         self._blocks: dict[tuple[bytes, bytes], tuple] = {}
         self._sums: dict[tuple[bytes, bytes], tuple] = {}

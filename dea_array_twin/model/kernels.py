@@ -86,27 +86,37 @@ def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
                     r[base + i] += f[i, 0] * sd0 + f[i, 1] * sd1
 
 
+@numba.njit(inline="always", **_JIT)
+def _add_row(values, at, v0, v1, v2):
+    """``values[at:at + 3] += (v0, v1, v2)``: one row of a 3x3 node block."""
+    values[at] += v0
+    values[at + 1] += v1
+    values[at + 2] += v2
+
+
 @numba.njit(**_JIT)
 def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, values):
     """Fill ``r``, ``c``, ``g`` and the global tangent nonzeros ``values`` (zeroed here).
 
-    ``position[e, p, s]`` is the index into ``values`` of local dofs ``(p, s)`` of
-    element ``e`` (:attr:`.SparsePattern.element_positions`).
+    ``position[e, p, b]`` is the index into ``values`` of local dofs ``(p, 3 b)`` of
+    element ``e`` (:attr:`.SparsePattern.element_block_positions`); the three columns of
+    node ``b`` follow it.  First, per quadrature point, ``F``, ``S`` and ``H T_b`` of every
+    node; then each upper node block ``K_ab`` is summed over the points in nine scalars
+    (registers) and added straight to ``values``, with its mirror ``K_ba = K_ab^T``.
     """
     ne, nq, nen, _ = grad.shape
-    nk = 3 * nen
     r[:] = 0.0
     values[:] = 0.0
     xe = np.empty((nen, 3))
     f = np.empty((3, 2))
-    ht = np.empty((nen, 3, 2))  # H T_b
-    ke = np.empty((nk, nk))
+    fq = np.empty((nq, 3, 2))  # F at each point
+    sq = np.empty((nq, 3))  # w S: (s00, s11, s01)
+    ht = np.empty((nq, nen, 3, 2))  # w H T_b at each point
     for e in range(ne):
         for n in range(nen):
             for i in range(3):
                 xe[n, i] = x[3 * elements[e, n] + i]
         k = maxwell[e]
-        ke[:, :] = 0.0
         for q in range(nq):
             dn = grad[e, q]
             det, dy, ddy = _point(xe, dn, k, c10, c20, c30, f, c[e, q], g[e, q])
@@ -125,46 +135,60 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
             h02 = ddy * di0 * di2 + b * dj0 * dj2
             h12 = ddy * di1 * di2 + b * dj1 * dj2
             s00, s11, s01 = 2.0 * g[e, q, 0] * w, 2.0 * g[e, q, 1] * w, g[e, q, 2] * w
+            sq[q, 0], sq[q, 1], sq[q, 2] = s00, s11, s01
+            for i in range(3):
+                fq[q, i, 0], fq[q, i, 1] = f[i, 0], f[i, 1]
             for n in range(nen):
                 a1, a2 = 2.0 * w * dn[n, 0], w * dn[n, 1]  # alpha_n = (2 dN1, 0, dN2), times w
                 b1, b2 = 2.0 * w * dn[n, 1], w * dn[n, 0]  # beta_n  = (0, 2 dN2, dN1), times w
-                ht[n, 0, 0] = h00 * a1 + h02 * a2
-                ht[n, 1, 0] = h01 * a1 + h12 * a2
-                ht[n, 2, 0] = h02 * a1 + h22 * a2
-                ht[n, 0, 1] = h01 * b1 + h02 * b2
-                ht[n, 1, 1] = h11 * b1 + h12 * b2
-                ht[n, 2, 1] = h12 * b1 + h22 * b2
+                ht[q, n, 0, 0] = h00 * a1 + h02 * a2
+                ht[q, n, 1, 0] = h01 * a1 + h12 * a2
+                ht[q, n, 2, 0] = h02 * a1 + h22 * a2
+                ht[q, n, 0, 1] = h01 * b1 + h02 * b2
+                ht[q, n, 1, 1] = h11 * b1 + h12 * b2
+                ht[q, n, 2, 1] = h12 * b1 + h22 * b2
                 sd0 = s00 * dn[n, 0] + s01 * dn[n, 1]
                 sd1 = s01 * dn[n, 0] + s11 * dn[n, 1]
                 base = 3 * elements[e, n]
                 for i in range(3):
                     r[base + i] += f[i, 0] * sd0 + f[i, 1] * sd1
-            for na in range(nen):
-                da0, da1 = dn[na, 0], dn[na, 1]
-                sa0 = s00 * da0 + s01 * da1
-                sa1 = s01 * da0 + s11 * da1
-                for nb in range(na, nen):
-                    db0, db1 = dn[nb, 0], dn[nb, 1]
-                    m00 = 2.0 * da0 * ht[nb, 0, 0] + da1 * ht[nb, 2, 0]
-                    m01 = 2.0 * da0 * ht[nb, 0, 1] + da1 * ht[nb, 2, 1]
-                    m10 = 2.0 * da1 * ht[nb, 1, 0] + da0 * ht[nb, 2, 0]
-                    m11 = 2.0 * da1 * ht[nb, 1, 1] + da0 * ht[nb, 2, 1]
-                    geo = sa0 * db0 + sa1 * db1
-                    for j in range(3):
-                        u0 = m00 * f[j, 0] + m01 * f[j, 1]
-                        u1 = m10 * f[j, 0] + m11 * f[j, 1]
-                        for i in range(3):
-                            ke[3 * na + i, 3 * nb + j] += f[i, 0] * u0 + f[i, 1] * u1
-                    for i in range(3):
-                        ke[3 * na + i, 3 * nb + i] += geo
-        for na in range(nen):  # the upper node blocks were summed; mirror them
+        for na in range(nen):
             for nb in range(na, nen):
-                for i in range(3):
-                    for j in range(3):
-                        v = ke[3 * na + i, 3 * nb + j]
-                        values[position[e, 3 * na + i, 3 * nb + j]] += v
-                        if nb != na:
-                            values[position[e, 3 * nb + j, 3 * na + i]] += v
+                k00 = k01 = k02 = k10 = k11 = k12 = k20 = k21 = k22 = geo = 0.0
+                for q in range(nq):
+                    dn = grad[e, q]
+                    da0, da1, db0, db1 = dn[na, 0], dn[na, 1], dn[nb, 0], dn[nb, 1]
+                    hb = ht[q, nb]
+                    m00 = 2.0 * da0 * hb[0, 0] + da1 * hb[2, 0]
+                    m01 = 2.0 * da0 * hb[0, 1] + da1 * hb[2, 1]
+                    m10 = 2.0 * da1 * hb[1, 0] + da0 * hb[2, 0]
+                    m11 = 2.0 * da1 * hb[1, 1] + da0 * hb[2, 1]
+                    s00, s11, s01 = sq[q, 0], sq[q, 1], sq[q, 2]
+                    geo += (s00 * da0 + s01 * da1) * db0 + (s01 * da0 + s11 * da1) * db1
+                    fx = fq[q]
+                    f00, f01, f10, f11, f20, f21 = fx[0, 0], fx[0, 1], fx[1, 0], fx[1, 1], fx[2, 0], fx[2, 1]
+                    u00, u10 = m00 * f00 + m01 * f01, m10 * f00 + m11 * f01  # M F^T, column j = 0
+                    u01, u11 = m00 * f10 + m01 * f11, m10 * f10 + m11 * f11
+                    u02, u12 = m00 * f20 + m01 * f21, m10 * f20 + m11 * f21
+                    k00 += f00 * u00 + f01 * u10
+                    k01 += f00 * u01 + f01 * u11
+                    k02 += f00 * u02 + f01 * u12
+                    k10 += f10 * u00 + f11 * u10
+                    k11 += f10 * u01 + f11 * u11
+                    k12 += f10 * u02 + f11 * u12
+                    k20 += f20 * u00 + f21 * u10
+                    k21 += f20 * u01 + f21 * u11
+                    k22 += f20 * u02 + f21 * u12
+                k00 += geo
+                k11 += geo
+                k22 += geo
+                _add_row(values, position[e, 3 * na, nb], k00, k01, k02)
+                _add_row(values, position[e, 3 * na + 1, nb], k10, k11, k12)
+                _add_row(values, position[e, 3 * na + 2, nb], k20, k21, k22)
+                if nb != na:  # the mirror block K_ba = K_ab^T
+                    _add_row(values, position[e, 3 * nb, na], k00, k10, k20)
+                    _add_row(values, position[e, 3 * nb + 1, na], k01, k11, k21)
+                    _add_row(values, position[e, 3 * nb + 2, na], k02, k12, k22)
 
 
 @numba.njit(**_JIT)
@@ -235,5 +259,5 @@ def tangent_values(disc: Discretisation, pattern: SparsePattern, x: np.ndarray, 
     c, g = np.empty((ne, nq, 3)), np.empty((ne, nq, 3))
     values = np.empty(pattern.rows.size)
     _tangent(x, disc.mesh.elements, disc.grad, thickness * disc.weight, maxwell,
-             yeoh.c10, yeoh.c20, yeoh.c30, pattern.element_positions, r, c, g, values)
+             yeoh.c10, yeoh.c20, yeoh.c30, pattern.element_block_positions, r, c, g, values)
     return r, values

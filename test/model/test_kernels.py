@@ -56,3 +56,15 @@ def test_compiled_energy_and_smallest_principal_stress_equal_the_numpy_reference
     sigma = principal_cauchy_stresses(point.c[~held], point.g[~held])[..., 0]
     assert kernels.min_principal_stress(point, held) == pytest.approx(sigma.min(), rel=1e-12)
     assert kernels.min_principal_stress(point, np.zeros_like(held)) <= sigma.min()
+
+
+def test_node_block_columns_follow_their_first_in_the_tangent_pattern():
+    """The compiled tangent adds each row of a 3x3 node block at ``element_block_positions`` and
+    the two entries after it: that must be where the pattern keeps columns 3 b + 1 and 3 b + 2."""
+    pattern = MembraneModel(ArrayConfig(layout="circular", element_order=2)).pattern
+    ne, k, _ = pattern.element_positions.shape
+    starts = pattern.element_block_positions
+    assert starts.shape == (ne, k, k // 3)
+    for j in range(3):
+        assert np.array_equal(pattern.element_positions[:, :, j::3], starts + j)
+    assert np.array_equal(pattern.cols[starts] % 3, np.zeros_like(starts))
