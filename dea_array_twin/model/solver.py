@@ -16,10 +16,11 @@ reduce it.  The solver
 * when a solve continues the last one (same free dofs and voltage, starting where
   it ended) and the prescribed change is ``s dp + rest`` for the last change ``dp``
   (moving the free dofs by ``dx_f``), predicts ``x_f + s dx_f`` plus the tangent
-  response to ``rest``; with a tangent at the start state itself, the quadratic
-  extrapolation ``x_f + (s + s^2) T dp - s^2 dx_f`` (``T dp`` the tangent response):
-  along a smooth command path (a curve, a sine, a reversal) this leaves a much
-  smaller residual than the tangent of an older state;
+  response to ``rest`` — or, when the last solve continued the one before it, the
+  quadratic through those three states instead of ``s dx_f``; with a tangent at the
+  start state itself, the quadratic extrapolation ``x_f + (s + s^2) T dp - s^2 dx_f``
+  (``T dp`` the tangent response): along a smooth command path (a curve, a sine, a
+  reversal) this leaves a much smaller residual than the tangent of an older state;
 * when only biased units' loads change (a force command, a Newmark step) and the solve
   continues the last one, starts the heights and the free dofs on the quadratic through
   the last three states (:class:`PathRecord`); a Newmark step first solves the heights'
@@ -240,8 +241,9 @@ class PathRecord:
     force_change : ndarray or None
         Their change along this solve [N] (None: the start's forces are not known).
     before : PathRecord or None
-        The heights-only solve that ended where this heights-only one started (its own
-        ``before`` dropped): the third point of the quadratic continuation.
+        The heights-only solve that ended where this heights-only one started, or the
+        solve without biased units that this one continued (:meth:`EquilibriumSolver._secant`),
+        its own ``before`` dropped: the third point of the quadratic continuation.
     """
 
     end: np.ndarray
@@ -536,12 +538,12 @@ class EquilibriumSolver:
                 for group, rest in zip(border.groups, dw - dw_along):
                     change[group] = rest
             if t == 1.0 and done == 0.0 and secant is not None:  # the last solve's path, continued
-                scale, dx_last, dp_last = secant
+                scale, dx_last, dp_last, dx_along = secant
                 if fact.state is not None and fact.state is self._last_path.end:  # tangent at x: quadratic
                     trial[free] += (scale + scale**2) * fact.predict(dp_last, groups) - scale**2 * dx_last
                     change = change - scale * dp_last
                 else:
-                    trial[free] += scale * dx_last
+                    trial[free] += dx_along
                     change = change - scale * dp_last
             trial[free] += fact.predict(change, groups)  # linear predictor from the last tangent
             maxwell = m.maxwell(v0 + t * (v1 - v0))
@@ -605,6 +607,8 @@ class EquilibriumSolver:
             stats.negative_eigenvalues = negative_eigenvalues(fact, x, border)
         record = dict(end=x, dx_f=x[free] - x_start[free], dp=x[prescribed] - x_start[prescribed], free=free,
                       voltage=v1, heights_only=heights_only, load_change=load_change)
+        if border is None and secant is not None:  # it continued the last solve's path
+            record.update(before=dataclasses.replace(last, before=None))
         if border is not None:
             before = None
             if heights_only and continuing and last.heights_only and np.array_equal(last.units, border.units):
@@ -624,14 +628,18 @@ class EquilibriumSolver:
 
     def _secant(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, d0: np.ndarray, d1: np.ndarray,
                 v0: np.ndarray, v1: np.ndarray, modes: tuple[str, ...]) -> tuple | None:
-        """``(s, dx_f, dp)`` when this solve continues the last one: same free dofs and voltage,
-        starting where it ended, the prescribed change ``s dp`` plus a remainder.
+        """``(s, dx_f, dp, dx_along)`` when this solve continues the last one: same free dofs and
+        voltage, starting where it ended, the prescribed change ``s dp`` plus a remainder.
 
         The last solve moved the free dofs by ``dx_f`` for a prescribed change ``dp``; with
         ``s = <dp_new, dp> / <dp, dp>`` the prediction ``x_f + s dx_f + T (dp_new - s dp)``
         (``T`` the tangent predictor) is second-order accurate along a smooth command path
         (a curve, a sine) where the tangent predictor alone is first-order, and exact for a
-        reversal (``s = -1``).
+        reversal (``s = -1``).  ``dx_along`` replaces ``s dx_f`` when the last solve continued
+        the one before it (:attr:`PathRecord.before`) along the same prescribed direction: the
+        quadratic through the three states (:func:`_extrapolate`), third order (the states of a
+        solve without biased units are a function of the command, so a turn between them is
+        no harm as long as the three are apart: :func:`_usable`, :func:`_within_reach`).
         """
         last = self._last_path
         if last is None or not np.array_equal(v0, v1) or not last.continues(x, free, v0):
@@ -639,11 +647,14 @@ class EquilibriumSolver:
         target = x.copy()
         self.model.apply_prescribed(target, modes, d1)
         dp_new, dp = target[prescribed] - x[prescribed], last.dp
-        norm2 = float(np.sum(dp * dp))
-        if norm2 == 0.0:
+        scale = _along(dp_new, dp, exact=False)
+        if scale is None or abs(scale) > 2.0:
             return None
-        scale = float(np.sum(dp_new * dp)) / norm2
-        return (scale, last.dx_f, dp) if abs(scale) <= 2.0 else None
+        before = last.before
+        ratio = _usable(_along(before.dp, dp)) if before is not None and before.dp.shape == dp.shape else None
+        if ratio is None or not _within_reach(scale, ratio):
+            return scale, last.dx_f, dp, scale * last.dx_f
+        return scale, last.dx_f, dp, _extrapolate(scale, ratio, last.dx_f, before.dx_f)
 
     def _heights_secant(self, load_change: np.ndarray) -> tuple | None:
         """``(dx_f, dw, dw)`` when this solve continues the last one (:meth:`PathRecord.continues`) with
