@@ -19,8 +19,11 @@ is partially factored over ``J`` with 3x3 block pivots (Schur complement, with
     D_k = F(k, k),   L(i, k) = F(i, k) D_k^-1,   F(i, j) -= L(i, k) W(j, k)^T  (i, j > k),
 
 and what is left on ``R`` is its update matrix ``U_s = F(R, R)``, passed to its
-parent (a stack: the children of the next supernode are always on top).  Only the
-lower block triangle of a front is stored or updated.  ``L`` comes out in the
+parent.  In the postorder a parent comes right after its last child, so the fronts of
+consecutive supernodes alternate between two buffers and the last child's ``U_s`` is
+read from its own front; only the other children's are copied to a stack (the
+children of the next supernode are always on top).  Only the lower block triangle of
+a front is stored or updated.  ``L`` comes out in the
 block-column layout of :mod:`.ldl` (the same ``lp``/``li``, so :func:`.ldl.solve`
 solves with it), and the negative eigenvalues are counted from the pivots of each
 ``D_k`` as there (Sylvester's law of inertia).
@@ -169,13 +172,16 @@ def fronts(start, lp, li, parent):
         if parent[last] != -1:
             children[supernode[parent[last]]] += 1
         largest = max(largest, fp[s + 1] - fp[s])
+    held = False  # whether the last supernode's update matrix stayed in its front (see factor)
     for s in range(n_super):  # the stack as the factorisation will use it
-        for _ in range(children[s]):
+        for _ in range(children[s] - (1 if held else 0)):
             depth -= 1
             used -= sizes[waiting[depth]]
-        rows = 3 * (fp[s + 1] - fp[s] - (start[s + 1] - start[s]))
+        ncol = start[s + 1] - start[s]
+        rows = 3 * (fp[s + 1] - fp[s] - ncol)
         sizes[s] = rows * rows
-        if rows > 0:
+        held = rows > 0 and fn[fp[s] + ncol] < start[s + 2]  # its parent is the next supernode
+        if rows > 0 and not held:
             waiting[depth] = s
             depth += 1
             used += sizes[s]
@@ -203,6 +209,21 @@ def _update_block(f, r, t, wt, first, end):
         r2[j] -= a20 * x0 + a21 * x1 + a22 * x2
 
 
+@numba.njit(inline="always", **_JIT)
+def _extend_add(f, src, base, stride, rows, position):
+    """Add the update matrix stored at ``src[base:]`` (row stride ``stride``, lower block triangle)
+    of a child with update rows ``rows`` to the front ``f``, whose block row of node ``i`` is
+    ``position[i]``."""
+    for u in range(rows.size):
+        ru = 3 * position[rows[u]]
+        for v in range(u + 1):
+            rv = 3 * position[rows[v]]
+            at = base + 3 * u * stride + 3 * v
+            for a in range(3):
+                for b in range(3):
+                    f[ru + a, rv + b] += src[at + a * stride + b]
+
+
 @numba.njit(**_JIT)
 def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_size, largest):
     """Fill ``lx`` (``L`` in the block columns ``lp`` of :func:`row_pattern`) and ``dinv``.
@@ -214,19 +235,19 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
     """
     n_super = start.size - 1
     position = np.empty(start[-1], np.int64)  # a node's block row in the current front
-    buffer = np.empty(largest * largest)
+    buffers = np.empty((2, largest * largest))  # fronts of consecutive supernodes alternate
     wt = np.empty((largest, largest))  # W^T of the current front's pivot columns
     stack = np.empty(max(stack_size, 1))
     offset = np.empty(n_super, np.int64)
     waiting = np.empty(n_super, np.int64)
     d = np.empty((3, 3))
-    depth, top, negative = 0, 0, 0
+    depth, top, negative, held = 0, 0, 0, -1
     for s in range(n_super):
         first, m = start[s], fp[s + 1] - fp[s]
         ncol = start[s + 1] - first
         nodes = fn[fp[s]:fp[s + 1]]
         size, pivots = 3 * m, 3 * ncol
-        f = buffer[:size * size].reshape((size, size))
+        f = buffers[s % 2, :size * size].reshape((size, size))
         for t in range(m):
             position[nodes[t]] = t
         for r in range(size):  # lower block triangle, diagonal blocks in full
@@ -239,20 +260,20 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
                 for a in range(3):
                     for b in range(3):
                         f[r + a, c + b] += values[bpos[p, a, b]]
-        for _ in range(children[s]):  # extend-add the children's update matrices
+        waiting_children = children[s]
+        if held == s - 1 and s > 0:  # the last child, s - 1, left its update matrix in its front
+            child_pivots = 3 * (start[s] - start[s - 1])
+            child_size = 3 * (fp[s] - fp[s - 1])
+            rows = fn[fp[s - 1] + child_pivots // 3:fp[s]]
+            _extend_add(f, buffers[(s - 1) % 2], child_pivots * child_size + child_pivots, child_size, rows,
+                        position)
+            waiting_children -= 1
+        for _ in range(waiting_children):  # extend-add the other children's update matrices
             depth -= 1
             child = waiting[depth]
             rows = fn[fp[child] + start[child + 1] - start[child]:fp[child + 1]]
-            dim = 3 * rows.size
             top = offset[child]
-            for u in range(rows.size):
-                ru = 3 * position[rows[u]]
-                for v in range(u + 1):
-                    rv = 3 * position[rows[v]]
-                    base = top + 3 * u * dim + 3 * v
-                    for a in range(3):
-                        for b in range(3):
-                            f[ru + a, rv + b] += stack[base + a * dim + b]
+            _extend_add(f, stack, top, 3 * rows.size, rows, position)
         for k in range(ncol):  # partial factorisation over the supernode's columns
             c = 3 * k
             for a in range(3):
@@ -280,7 +301,10 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
                     for b in range(3):
                         lx[q, a, b] = f[3 * t + a, 3 * k + b]
                 q += 1
-        if size > pivots:  # push U_s
+        held = -1
+        if size > pivots and fn[fp[s] + ncol] < start[s + 2]:
+            held = s  # the parent is the next supernode (s is its last child): U_s stays in this front
+        elif size > pivots:  # push U_s
             dim = size - pivots
             offset[s] = top
             for r in range(dim):
