@@ -26,7 +26,8 @@ reduce it.  The solver
   the last three states (:class:`PathRecord`); a Newmark step first solves the heights'
   own equation with the membrane force extrapolated the same way (:meth:`EquilibriumSolver._heights_step`);
 * may reuse the last factorisation for several iterations (modified Newton) and
-  refactors when the residual falls by less than ``contraction`` per iteration;
+  refactors when the residual falls by less than ``contraction`` per iteration
+  (unless that iteration converged: a residual at its round-off floor does not contract);
 * converges when the residual is below ``residual_tol * force_scale`` and the
   remaining position error, estimated from the last increment and the residual
   reduction ratio ``q`` as ``|dx| q / (1 - q)``, is below
@@ -434,8 +435,11 @@ class EquilibriumSolver:
             step_size = alpha * max(np.abs(dx).max(), np.abs(dw).max(initial=0.0))
             last_dx = step_size * ratio / (1.0 - ratio) if (alpha == 1.0 and ratio < 0.9) else step_size
             # A step that left the free residual alone (only the heights moved) says nothing
-            # about how good the tangent is.
-            if not s.modified_newton or (ratio > s.contraction and not (border is not None and border.skipped_solve)):
+            # about how good the tangent is, nor does one that ended converged (the residual
+            # at its round-off floor contracts by nothing): the tangent stays for the next solve.
+            converged = np.abs(res).max() <= r_tol and last_dx <= x_tol
+            if not s.modified_newton or (ratio > s.contraction and not converged
+                                         and not (border is not None and border.skipped_solve)):
                 fact = None
             fresh = False
         return None

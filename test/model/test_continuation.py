@@ -50,3 +50,17 @@ def test_warm_updates_along_a_curve_reach_the_cold_solves_state():
     cold = ArrayTwin(ArrayConfig(**COARSE), NewtonSettings(check_stability=False)).solve([0, 0.00725, 0], 0.0,
                                                                                         FREE_CENTRE)
     assert res.force[1] == pytest.approx(cold.force[1], rel=1e-6)
+
+
+def test_a_solve_of_the_command_the_twin_holds_keeps_its_tangent():
+    """Solving again for the command the twin is at (a held command, a re-sent one) takes one
+    Newton step from an equilibrium whose residual is at its round-off floor, so the step does
+    not contract it by ``contraction``: that says nothing about the tangent, which is kept (no
+    factorisation; on the default 1-by-3 at 10 mm it was one per repeat from the fifth on, ~5 ms
+    each), and the state stays where it was (force to 1e-6)."""
+    twin = ArrayTwin(ArrayConfig(), NewtonSettings(check_stability=False))
+    for d in np.linspace(0.0, 0.010, 11):
+        first = twin.solve([0, d, 0], 0.0, FREE_CENTRE)
+    repeats = [twin.solve([0, 0.010, 0], 0.0, FREE_CENTRE) for _ in range(8)]
+    assert [res.factorisations for res in repeats] == [0] * 8
+    assert all(res.force[1] == pytest.approx(first.force[1], rel=1e-6) for res in repeats)
