@@ -56,7 +56,7 @@ import numpy as np
 from .config import ArrayConfig
 from .reduced import ReducedModel, RomMismatchError, check_config
 from .rom_build import held_elements
-from .rom_kernels import classify, evaluate, hessian, point_maps, update
+from .rom_kernels import classify, evaluate, hessian, point_maps, reduced_tangent, update
 from .solver import ConvergenceError, NewtonSettings, SolveCancelled
 from .twin import ArrayTwin, TwinResult
 
@@ -94,32 +94,12 @@ class ReducedResult(TwinResult):
 
 
 class _Tangent:
-    """The reduced Hessian at one state and what an update derives from it."""
+    """The reduced Hessian at one state and what an update derives from it (:func:`.rom_kernels.reduced_tangent`)."""
 
     def __init__(self, twin: "ReducedTwin", hz: np.ndarray, hm: np.ndarray):
-        nd, nc = twin._nd, twin._nc
-        q, dsl, w = slice(1 + nd, nc), slice(1, 1 + nd), slice(nc, None)
-        hqq = hz[q, q]
-        try:
-            chol = np.linalg.cholesky(hqq)
-            self.stable = True
-            inv = np.linalg.inv(chol)
-            self.hqq_inv = inv.T @ inv
-        except np.linalg.LinAlgError:
-            self.stable = False
-            self.hqq_inv = np.linalg.inv(hqq)
-        hqp = np.hstack([hz[q, dsl], hm[q]])
-        self.sensitivity = -self.hqq_inv @ hqp  # dq/dp, p = (d, m)
-        # Outputs o = (F_driven, C): dF/dz = H_dz, dC/dz = -(eps/t0^2) H_mz.
-        self.out_q = np.vstack([hz[dsl, q], -twin._cap_factor * hm[q].T])
-        out_w = np.vstack([hz[dsl, w], -twin._cap_factor * hm[w].T])
-        self.h_wq = hz[w, q]
-        hqw = hz[q, w]
-        schur = hz[w, w] - hqw.T @ self.hqq_inv @ hqw
-        indicator = (self.out_q @ self.hqq_inv @ hqw - out_w) @ np.linalg.pinv(schur, rcond=1e-12, hermitian=True)
-        self.indicator = indicator / twin._output_scale[:, None]
-        self.arrays = tuple(np.ascontiguousarray(a) for a in (self.sensitivity, self.hqq_inv, self.out_q, self.h_wq,
-                                                             self.indicator))
+        self.stable, self.arrays = reduced_tangent(hz, hm, twin._nd, twin.rom.n_modes, twin._cap_factor,
+                                                   twin._output_scale)
+        self.hqq_inv = self.arrays[1]
 
 
 class ReducedTwin:

@@ -26,8 +26,10 @@ capacitance (eq. 7) times ``t0^2 / eps``.  The Hessian is
 
 :func:`evaluate` (numba, one call per update) gives energy, gradient, the gradient
 along ``W``, the largest ``det C`` per unit and the smallest principal Cauchy stress
-over the evaluated points; :func:`hessian` (numpy, when the tangent is refreshed)
-gives the full Hessian over ``[q, d, w]`` and its ``m`` columns.
+over the evaluated points; :func:`hessian` (when the tangent is refreshed) gives the
+full Hessian over ``[q, d, w]`` and its ``m`` columns, and :func:`reduced_tangent` what
+an update needs from it (``H_qq^-1``, the predictor's sensitivities, the output rows and
+the indicator's matrix) in the same compiled call chain, without numpy's per-call cost.
 """
 
 from __future__ import annotations
@@ -93,7 +95,6 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
     energy = 0.0
     sigma_min = np.inf
     f = np.empty(6)
-    pk = np.empty(6)
     for p in range(np_):
         u = unit[p]
         k = maxwell[u] if u >= 0 else 0.0
@@ -115,15 +116,18 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
         if w == 0.0:  # a monitor point: read, not summed
             continue
         energy += w * (xv * (c10 + xv * (c20 + xv * c30)) - k * det)
-        for i in range(3):  # P = F S, times the weight
-            pk[2 * i] = w * (f[2 * i] * s00 + f[2 * i + 1] * s01)
-            pk[2 * i + 1] = w * (f[2 * i] * s01 + f[2 * i + 1] * s11)
-        for c in range(6):
-            pc = pk[c]
-            for j in range(nc):
-                grad[j] += pc * fmap[p, c, j]
-            for j in range(nw):
-                grad_w[j] += pc * wmap[p, c, j]
+        p0 = w * (f[0] * s00 + f[1] * s01)  # P = F S, times the weight
+        p1 = w * (f[0] * s01 + f[1] * s11)
+        p2 = w * (f[2] * s00 + f[3] * s01)
+        p3 = w * (f[2] * s01 + f[3] * s11)
+        p4 = w * (f[4] * s00 + f[5] * s01)
+        p5 = w * (f[4] * s01 + f[5] * s11)
+        for j in range(nc):  # one pass along the row (vector instructions)
+            grad[j] += (p0 * fmap[p, 0, j] + p1 * fmap[p, 1, j] + p2 * fmap[p, 2, j] + p3 * fmap[p, 3, j]
+                        + p4 * fmap[p, 4, j] + p5 * fmap[p, 5, j])
+        for j in range(nw):
+            grad_w[j] += (p0 * wmap[p, 0, j] + p1 * wmap[p, 1, j] + p2 * wmap[p, 2, j] + p3 * wmap[p, 3, j]
+                          + p4 * wmap[p, 4, j] + p5 * wmap[p, 5, j])
         if u >= 0:
             grad_m[u] -= w * det
     return energy, sigma_min
@@ -358,6 +362,8 @@ def _hessian(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, hz, hm):
     d = np.empty((6, 6))
     b = np.zeros((3, 6))
     h = np.empty((3, 3))
+    bh = np.empty((6, 3))
+    t = np.empty(6)
     for p in range(np_):
         w = xi[p]
         if w == 0.0:
@@ -390,36 +396,33 @@ def _hessian(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, hz, hm):
             b[2, 2 * i] = f[2 * i + 1]
             b[2, 2 * i + 1] = f[2 * i]
         s00, s11, s01 = 2.0 * g0, 2.0 * g1, g2
+        for c in range(6):  # D = w (B^T H B + S (x) I_3)
+            for x in range(3):
+                bh[c, x] = b[0, c] * h[0, x] + b[1, c] * h[1, x] + b[2, c] * h[2, x]
         for c in range(6):
             for e in range(6):
-                acc = 0.0
-                for v in range(3):
-                    for x in range(3):
-                        acc += b[v, c] * h[v, x] * b[x, e]
-                d[c, e] = acc * w
+                d[c, e] = w * (bh[c, 0] * b[0, e] + bh[c, 1] * b[1, e] + bh[c, 2] * b[2, e])
         for i in range(3):
             d[2 * i, 2 * i] += w * s00
             d[2 * i + 1, 2 * i + 1] += w * s11
             d[2 * i, 2 * i + 1] += w * s01
             d[2 * i + 1, 2 * i] += w * s01
+        # D A and the upper triangle of A^T D A; the innermost loops run along a row (vector instructions)
         for c in range(6):
+            d0, d1, d2, d3, d4, d5 = d[c, 0], d[c, 1], d[c, 2], d[c, 3], d[c, 4], d[c, 5]
             for j in range(k):
-                acc = 0.0
-                for e in range(6):
-                    acc += d[c, e] * a[e, j]
-                da[c, j] = acc
+                da[c, j] = d0 * a[0, j] + d1 * a[1, j] + d2 * a[2, j] + d3 * a[3, j] + d4 * a[4, j] + d5 * a[5, j]
         for i in range(k):
+            a0, a1, a2, a3, a4, a5 = a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i]
             for j in range(i, k):
-                acc = 0.0
-                for c in range(6):
-                    acc += a[c, i] * da[c, j]
-                hz[i, j] += acc
+                hz[i, j] += (a0 * da[0, j] + a1 * da[1, j] + a2 * da[2, j] + a3 * da[3, j] + a4 * da[4, j]
+                             + a5 * da[5, j])
         if u >= 0:  # ddet/dF = c1 dc0/dF + c0 dc1/dF - 2 c2 dc2/dF
+            for c in range(6):
+                t[c] = -w * (c1 * b[0, c] + c0 * b[1, c] - 2.0 * c2 * b[2, c])
             for j in range(k):
-                acc = 0.0
-                for c in range(6):
-                    acc += (c1 * b[0, c] + c0 * b[1, c] - 2.0 * c2 * b[2, c]) * a[c, j]
-                hm[j, u] -= w * acc
+                hm[j, u] += t[0] * a[0, j] + t[1] * a[1, j] + t[2] * a[2, j] + t[3] * a[3, j] + t[4] * a[4, j] \
+                    + t[5] * a[5, j]
     for i in range(k):
         for j in range(i):
             hz[i, j] = hz[j, i]
@@ -440,6 +443,167 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
     hz, hm = np.empty((k, k)), np.empty((k, n_units))
     _hessian(fmap, wmap, xi, unit, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, hz, hm)
     return hz, hm
+
+
+@numba.njit(**_JIT)
+def _cholesky(a):
+    """Lower Cholesky factor of ``a`` in place (its strict upper triangle is left as it was);
+    False if ``a`` is not positive definite."""
+    n = a.shape[0]
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= a[j, k] * a[j, k]
+        if not s > 0.0:
+            return False
+        s = np.sqrt(s)
+        a[j, j] = s
+        for i in range(j + 1, n):
+            t = a[i, j]
+            for k in range(j):
+                t -= a[i, k] * a[j, k]
+            a[i, j] = t / s
+    return True
+
+
+@numba.njit(**_JIT)
+def _inverse_from_cholesky(lower, out):
+    """``out = (L L^T)^-1 = L^-T L^-1`` from the lower factor ``L``."""
+    n = lower.shape[0]
+    linv = np.zeros((n, n))
+    for j in range(n):  # column j of L^-1: forward substitution on e_j
+        linv[j, j] = 1.0 / lower[j, j]
+        for i in range(j + 1, n):
+            s = 0.0
+            for k in range(j, i):
+                s -= lower[i, k] * linv[k, j]
+            linv[i, j] = s / lower[i, i]
+    for i in range(n):
+        for j in range(i, n):
+            s = 0.0
+            for k in range(j, n):
+                s += linv[k, i] * linv[k, j]
+            out[i, j] = s
+            out[j, i] = s
+
+
+@numba.njit(**_JIT)
+def _reduce_tangent(hz, hm, nd, cap_factor, output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator):
+    r = hqq_inv.shape[0]
+    q0 = 1 + nd
+    nc = q0 + r
+    nw = hz.shape[0] - nc
+    nu = hm.shape[1]
+    no = nd + nu
+    hqq = np.empty((r, r))
+    for i in range(r):
+        for j in range(r):
+            hqq[i, j] = hz[q0 + i, q0 + j]
+    stable = _cholesky(hqq)
+    if stable:
+        _inverse_from_cholesky(hqq, hqq_inv)
+    else:
+        for i in range(r):
+            for j in range(r):
+                hqq[i, j] = hz[q0 + i, q0 + j]
+        hqq_inv[:, :] = np.linalg.inv(hqq)
+    # outputs o = (F_driven, C): dF/dz = H_dz, dC/dz = -(eps/t0^2) H_mz; over q (out_q) and w (out_w)
+    out_w = np.empty((no, nw))
+    for i in range(no):
+        for j in range(r):
+            out_q[i, j] = hz[1 + i, q0 + j] if i < nd else -cap_factor * hm[q0 + j, i - nd]
+        for j in range(nw):
+            out_w[i, j] = hz[1 + i, nc + j] if i < nd else -cap_factor * hm[nc + j, i - nd]
+    for i in range(r):  # dq/dp = -H_qq^-1 H_qp, p = (d, m)
+        for j in range(no):
+            acc = 0.0
+            for k in range(r):
+                acc -= hqq_inv[i, k] * (hz[q0 + k, 1 + j] if j < nd else hm[q0 + k, j - nd])
+            sensitivity[i, j] = acc
+    x = np.empty((r, nw))  # H_qq^-1 H_qw
+    for i in range(r):
+        for j in range(nw):
+            acc = 0.0
+            for k in range(r):
+                acc += hqq_inv[i, k] * hz[q0 + k, nc + j]
+            x[i, j] = acc
+    schur = np.empty((nw, nw))  # S = H_ww - H_wq H_qq^-1 H_qw
+    for i in range(nw):
+        for j in range(r):
+            h_wq[i, j] = hz[nc + i, q0 + j]
+        for j in range(nw):
+            acc = hz[nc + i, nc + j]
+            for k in range(r):
+                acc -= hz[nc + i, q0 + k] * x[k, j]
+            schur[i, j] = acc
+    for i in range(nw):  # symmetric to rounding: make it exactly so for eigh
+        for j in range(i):
+            schur[i, j] = schur[j, i] = 0.5 * (schur[i, j] + schur[j, i])
+    values, vectors = np.linalg.eigh(schur)  # S^+ over the eigenvalues above 1e-12 of the largest (numpy's pinv)
+    cutoff = 1e-12 * np.abs(values).max()
+    for j in range(nw):
+        values[j] = 1.0 / values[j] if abs(values[j]) > cutoff else 0.0
+    m = np.empty((no, nw))  # H_oq H_qq^-1 H_qw - H_ow
+    for i in range(no):
+        for j in range(nw):
+            acc = -out_w[i, j]
+            for k in range(r):
+                acc += out_q[i, k] * x[k, j]
+            m[i, j] = acc
+    mv = m @ vectors
+    for i in range(no):
+        for j in range(nw):
+            mv[i, j] *= values[j]
+    for i in range(no):
+        for j in range(nw):
+            acc = 0.0
+            for k in range(nw):
+                acc += mv[i, k] * vectors[j, k]
+            indicator[i, j] = acc / output_scale[i]
+    return stable
+
+
+def reduced_tangent(hz: np.ndarray, hm: np.ndarray, nd: int, n_modes: int, cap_factor: float,
+                    output_scale: np.ndarray) -> tuple[bool, tuple]:
+    """What an update needs from the reduced Hessian of :func:`hessian` (one compiled call).
+
+    With ``q``, ``d``, ``w`` the blocks of ``[1, d, q, w]``, outputs ``o = (F_driven, C)``:
+
+        H_qq^-1                        (by Cholesky when H_qq is positive definite, else LU),
+        dq/dp = -H_qq^-1 [H_qd, H_qm]   (the predictor, p = (d, m)),
+        dO/dq = [H_dq; -(eps/t0^2) H_mq],
+        indicator matrix = (dO/dq H_qq^-1 H_qw - dO/dw) S^+ / o_scale,   S = H_ww - H_wq H_qq^-1 H_qw,
+
+    ``S^+`` the pseudo-inverse over the eigenvalues above ``1e-12`` of the largest in magnitude.
+
+    Parameters
+    ----------
+    hz, hm : ndarray
+        :func:`hessian`'s output.
+    nd, n_modes : int
+        Number of driven units and of POD modes (``q``).
+    cap_factor : float
+        ``eps / t0^2`` [F/m^3].
+    output_scale : ndarray, shape (nd + n_units,)
+        Scale of each output (driven forces [N], capacitances [F]).
+
+    Returns
+    -------
+    stable : bool
+        Whether ``H_qq`` is positive definite.
+    arrays : tuple
+        ``(dq/dp, H_qq^-1, dO/dq, H_wq, indicator matrix)``, as :func:`update` takes them.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        If ``H_qq`` is singular.
+    """
+    r, no = n_modes, nd + hm.shape[1]
+    nw = hz.shape[0] - 1 - nd - r
+    arrays = (np.empty((r, no)), np.empty((r, r)), np.empty((no, r)), np.empty((nw, r)), np.empty((no, nw)))
+    stable = _reduce_tangent(hz, hm, nd, cap_factor, output_scale, *arrays)
+    return bool(stable), arrays
 
 
 def hessian_reference(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, z: np.ndarray,

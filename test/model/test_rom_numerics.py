@@ -101,3 +101,47 @@ def test_compiled_reduced_hessian_equals_the_numpy_reference_and_the_gradient_di
     dm = 10.0
     fd = (gradient(z, maxwell + dm * np.eye(3)[1])[0] - gradient(z, maxwell - dm * np.eye(3)[1])[0]) / (2 * dm)
     np.testing.assert_allclose(hm[1:, 1], fd[1:], rtol=1e-5, atol=1e-7 * np.abs(hm).max())
+
+
+def _tangent_reference(hz, hm, nd, r, cap_factor, output_scale):
+    """The update's matrices from the reduced Hessian, by numpy (inverse, products, pinv)."""
+    q, dsl, w = slice(1 + nd, 1 + nd + r), slice(1, 1 + nd), slice(1 + nd + r, None)
+    hqq_inv = np.linalg.inv(hz[q, q])
+    sensitivity = -hqq_inv @ np.hstack([hz[q, dsl], hm[q]])
+    out_q = np.vstack([hz[dsl, q], -cap_factor * hm[q].T])
+    out_w = np.vstack([hz[dsl, w], -cap_factor * hm[w].T])
+    schur = hz[w, w] - hz[w, q] @ hqq_inv @ hz[q, w]
+    indicator = (out_q @ hqq_inv @ hz[q, w] - out_w) @ np.linalg.pinv(schur, rcond=1e-12, hermitian=True)
+    return sensitivity, hqq_inv, out_q, hz[w, q], indicator / output_scale[:, None]
+
+
+@pytest.mark.parametrize("case", ["positive definite", "indefinite H_qq", "singular Schur complement"])
+def test_compiled_reduced_tangent_equals_inverse_sensitivities_and_indicator_by_numpy(case):
+    """H_qq^-1 (Cholesky, or LU when H_qq is indefinite: an unstable state), the predictor dq/dp, the
+    output rows and the indicator's matrix with the pseudo-inverse of S = H_ww - H_wq H_qq^-1 H_qw
+    (an enrichment vector inside the basis makes S singular: its direction must be dropped, not inverted)."""
+    rng = np.random.default_rng(7)
+    nd, r, nw, nu = 2, 6, 4, 3
+    k = 1 + nd + r + nw
+    m = rng.normal(size=(k, k))
+    hz = m @ m.T + 0.5 * np.eye(k)
+    if case == "indefinite H_qq":
+        hz[1 + nd, 1 + nd] = -3.0
+    if case == "singular Schur complement":  # w_0 = q_0 + 2 q_1: Hessian of a dependent vector
+        t = np.eye(k)
+        t[1 + nd + r, :] = 0.0
+        t[1 + nd + r, 1 + nd] = 1.0
+        t[1 + nd + r, 2 + nd] = 2.0
+        hz = t @ hz @ t.T
+    hz[0], hz[:, 0] = 0.0, 0.0
+    hm = rng.normal(size=(k, nu))
+    cap_factor, scale = 0.3, rng.uniform(0.5, 2.0, nd + nu)
+    stable, arrays = rom_kernels.reduced_tangent(hz, hm, nd, r, cap_factor, scale)
+    assert stable == (case != "indefinite H_qq")
+    reference = _tangent_reference(hz, hm, nd, r, cap_factor, scale)
+    q = slice(1 + nd, 1 + nd + r)
+    np.testing.assert_allclose(arrays[1] @ hz[q, q], np.eye(r), atol=1e-10)
+    for name, got, want in zip(("dq/dp", "H_qq^-1", "dO/dq", "H_wq", "indicator"), arrays, reference):
+        np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-10 * np.abs(want).max(), err_msg=name)
+    if case == "singular Schur complement":
+        assert np.isfinite(arrays[4]).all() and np.abs(arrays[4]).max() < 1e3 * np.abs(hz).max()
