@@ -66,9 +66,10 @@ class IndenterBorder:
     def __init__(self, units: np.ndarray, dofs: list[np.ndarray], groups: list[np.ndarray], load: IndenterLoad):
         self.units, self.dofs, self.groups, self.load = np.asarray(units, dtype=int), dofs, groups, load
         self.t = 1.0
-        #: The predictor's and the first Newton step's ``dw`` since :meth:`begin`: together the
-        #: linear prediction of the heights.
-        self.predicted = np.zeros(self.units.size)
+        #: The heights [m] the Newton solve since :meth:`begin` starts from (after every
+        #: predictor: a time integrator's guess, the load step's linear predictor, a
+        #: continuation) and its first step's ``dw``: together the linear prediction of the heights.
+        self.start: np.ndarray | None = None
         self.first_dw: np.ndarray | None = None
         #: Why the last trial outside a bias table was refused (for the error message), if any.
         self.outside: str | None = None
@@ -85,8 +86,8 @@ class IndenterBorder:
     def begin(self, t: float) -> None:
         """Start a Newton solve at load-path fraction ``t``."""
         self.t = t
+        self.start = None
         self.first_dw = None
-        self.predicted = np.zeros(self.units.size)
 
     def predict(self, fact, x: np.ndarray, t_from: float) -> None:
         """Linear predictor of the heights for the load step from ``t_from`` to ``t``, in ``x``.
@@ -105,7 +106,6 @@ class IndenterBorder:
         except (np.linalg.LinAlgError, BiasRangeError):
             return
         self.move(x, dw)
-        self.predicted = dw
 
     def load_change(self, w: np.ndarray, t_from: float, t_to: float) -> np.ndarray:
         """``G(w, t_to) - G(w, t_from)`` [N] per unit at fixed heights ``w`` (the load step's change)."""

@@ -534,7 +534,6 @@ class EquilibriumSolver:
                     dx_along, dw_along, dw = continuation
                     trial[free] += dx_along
                     border.move(trial, dw)
-                    border.predicted = dw
                 else:
                     border.predict(fact, trial, done)
             change = trial[prescribed] - x[prescribed]
@@ -551,8 +550,10 @@ class EquilibriumSolver:
                     change = change - scale * dp_last
             trial[free] += fact.predict(change, groups)  # linear predictor from the last tangent
             maxwell = m.maxwell(v0 + t * (v1 - v0))
+            if border is not None:
+                border.start = border.heights(trial)
             outcome = self._newton(trial, free, prescribed, maxwell, fact, stats, cancel, border)
-            if outcome is not None and border is not None and detect_snaps and self._jumped(border, x, outcome[0]):
+            if outcome is not None and border is not None and detect_snaps and self._jumped(border, outcome[0]):
                 if t - done > s.snap_step:  # maybe another branch: retry in halves
                     retries += 1
                     stats.step_cuts = cuts + retries
@@ -623,11 +624,19 @@ class EquilibriumSolver:
         self._last_path = PathRecord(**record)
         return x, r, point, stats
 
-    def _jumped(self, border: IndenterBorder, x_old: np.ndarray, x_new: np.ndarray) -> bool:
-        """Whether a biased height moved ``jump_tol * D`` away from its step's linear prediction."""
-        if border.first_dw is None:
+    def _jumped(self, border: IndenterBorder, x_new: np.ndarray) -> bool:
+        """Whether a biased height moved ``jump_tol * D`` away from its step's linear prediction.
+
+        The prediction is Newton's first iterate ``w_start + dw_1``: the heights it started
+        from (with a time integrator's guess ``w + dt v + dt^2 a / 2``, the load step's
+        predictor or a continuation) plus its first bordered step, which holds the response of
+        the tangent to everything that changed at fixed heights (loads, voltage through the
+        Maxwell term, driven units).  A continuous move of the equilibrium converges close to
+        it (the distance is second order in the step); a jump to another branch does not.
+        """
+        if border.first_dw is None or border.start is None:
             return False
-        predicted = border.heights(x_old) + border.predicted + border.first_dw
+        predicted = border.start + border.first_dw
         return bool(np.abs(border.heights(x_new) - predicted).max() > self.settings.jump_tol * self.model.length_scale)
 
     def _secant(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, d0: np.ndarray, d1: np.ndarray,
