@@ -16,7 +16,8 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
 ``--node SECONDS``: instead, the twin node (its own process) with ``model: rom`` and the
 ROM of ``--rom`` at ``update_rate: 1000``, commands at 1 kHz (unit k at 7.5 + 5 sin(2 pi t
 + 2 pi k / n) mm, 1000 V on every unit), the FE check at ``--fe-check-rate``; reports
-the force messages per tick (every tick publishes) and the node's diagnostics.
+the force messages per tick (every tick publishes), the node's diagnostics and the CPU the node process
+and this one used.
 Targets (issue 15): 1x3 <= 0.1 % force and capacitance error, <= 0.1 ms per update,
 the node at 1 kHz holding >= 99 % of its ticks; 4x4 <= 0.5 ms per update.
 ``--rom FILE`` reuses a trained ROM (its stored validation table is printed; held-out
@@ -116,6 +117,8 @@ def main_node(rom_file: str, seconds: float, check_rate: float) -> None:
     """The node with the ROM at update_rate 1000 on a 1 Hz sine command: the share of ticks it publishes."""
     import math
 
+    from bench_core import _cpu_seconds
+
     from dea_array_twin.ros.testing import TwinHarness
 
     rate = 1000.0
@@ -133,10 +136,12 @@ def main_node(rom_file: str, seconds: float, check_rate: float) -> None:
             h.send_displacement([0.0075 + 0.005 * math.sin(2 * math.pi * (t + k / 3.0)) for k in range(3)])
             if window is None and t >= 3.0:
                 h.clear()
-                window = time.monotonic()
+                window, node_cpu, sender_cpu = time.monotonic(), _cpu_seconds(h.process.pid), time.process_time()
             tick += 1.0 / rate
             time.sleep(max(0.0, tick - time.monotonic()))
         elapsed = time.monotonic() - window
+        node_cpu = (_cpu_seconds(h.process.pid) - node_cpu) / elapsed
+        sender_cpu = (time.process_time() - sender_cpu) / elapsed
         forces = len(h.messages("force"))
         diags = h.messages("/diagnostics")
     values = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
@@ -145,6 +150,8 @@ def main_node(rom_file: str, seconds: float, check_rate: float) -> None:
             "fe_checks", "fe_check_ms", "rom_fe_force_difference_max", "rom_fe_capacitance_difference_max")
     print(f"  force messages {forces} in {elapsed:.2f} s = {forces / elapsed:.1f} /s: "
           f"{100 * forces / (rate * elapsed):.1f} % of the ticks (goal >= 99 %); {load()} at the end")
+    print(f"  CPU: the node process {node_cpu:.2f} of a core, this process (sending the commands, receiving the "
+          f"outputs) {sender_cpu:.2f}")
     print("  last diagnostics: " + ", ".join(f"{k} {values.get(k)}" for k in keys))
 
 
