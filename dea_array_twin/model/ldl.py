@@ -173,9 +173,13 @@ def solve(n, lp, li, lx, dinv, order, b, x):
         y0, y1, y2 = y[i, 0], y[i, 1], y[i, 2]
         for a in range(3):
             y[i, a] = di[a, 0] * y0 + di[a, 1] * y1 + di[a, 2] * y2
-    for i in range(n - 1, -1, -1):  # L^T x = z
+    # L^T x = z, the columns last to first and each column's blocks last to first: L is read
+    # as one descending stream, which the hardware prefetcher follows (reading each column
+    # upwards while stepping down the columns defeated it: on the 4-by-4, 16 MB of L, this
+    # half of the solve took ~3 ms instead of ~0.8 ms).
+    for i in range(n - 1, -1, -1):
         s0, s1, s2 = y[i, 0], y[i, 1], y[i, 2]
-        for q in range(lp[i], lp[i + 1]):
+        for q in range(lp[i + 1] - 1, lp[i] - 1, -1):
             lq = lx[q]
             yr = y[li[q]]
             s0 -= lq[0, 0] * yr[0] + lq[1, 0] * yr[1] + lq[2, 0] * yr[2]
