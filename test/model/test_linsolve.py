@@ -90,6 +90,25 @@ def test_free_dofs_that_are_not_whole_nodes_are_factored_by_superlu():
     assert np.abs(k @ x - b).max() <= 1e-10
 
 
+@pytest.mark.parametrize("backend", ["block", "block-uplooking"])
+def test_nodes_coupled_in_some_components_only_are_factored_by_superlu(backend):
+    """Whole free nodes whose coupling is not a full 3x3 block (here node 2 couples with node 0's
+    x dof only) do not fit the block LDL^T's value map: SuperLU factors them, and solves."""
+    from dea_array_twin.model.assembly import SparsePattern
+
+    elements = np.array([[0, 1, 2, 3, 4, 5], [3, 4, 5, 6, 7, 8], [0, 6, 6, 6, 6, 6]])  # nodes 0-1, 1-2, x0-node 2
+    pattern = SparsePattern(elements, 9)
+    factoriser = Factoriser(pattern, np.arange(9), backend)
+    assert factoriser.backend == "superlu"
+    rng = np.random.default_rng(3)
+    k = pattern.block(np.ones(pattern.rows.size), np.arange(9), np.arange(9)).toarray()
+    k = k * rng.uniform(0.1, 0.2, (9, 9))
+    k = k + k.T + 9.0 * np.eye(9)  # symmetric, diagonally dominant, on the same pattern
+    values = k[pattern.rows, pattern.cols]
+    b = np.arange(1.0, 10.0)
+    assert factoriser.factor(values).solve(b) == pytest.approx(np.linalg.solve(k, b), rel=1e-12)
+
+
 def test_a_zero_pivot_falls_back_to_superlu_which_solves_and_reports_the_inertia_unknown():
     """K = [[0, I], [I, 0]] (two nodes, eigenvalues +-1): the block LDL^T meets a zero 3x3 pivot
     and hands over to SuperLU, which has to pivot off the diagonal; its U then says nothing
