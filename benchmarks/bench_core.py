@@ -24,7 +24,7 @@ default mesh sizes, plus the 1-by-3 with every mesh size divided by the --refine
 factors; dofs, mesh time, first solve to 5 mm, warm (0.1 mm) and checked update
 medians, and the growth exponent of time against dofs; with ``--before DIR`` each row
 is measured in fresh processes on this checkout and on DIR, alternating, and DIR's
-warm/checked medians are printed beside.
+warm/checked medians and first solve are printed beside.
 
 ``--node``: the twin node in its own process at ``update_rate: 500`` with a smooth
 command stream (a 1 Hz sine on each unit, sent at 500 Hz), stability checks at the
@@ -271,7 +271,8 @@ def main_arrays(args) -> None:
     print(f"scaling: centre unit driven to 5 mm, others free; {_load()} at start"
           + (f"; each row in fresh processes, this checkout and {args.before} alternating" if args.before else ""))
     print(f"{'array':10s} {'frame mm':>10s} {'dofs':>7s} {'mesh s':>7s} {'first s (its/facts)':>20s} "
-          f"{'warm ms (its, facts)':>22s} {'checked ms':>10s} " + (f"{'before w/c ms':>16s} " if args.before else "")
+          f"{'warm ms (its, facts)':>22s} {'checked ms':>10s} "
+          + (f"{'before w/c ms/first s':>22s} " if args.before else "")
           + f"{'goal w/c/first':>16s} {'issue before w/c ms':>22s}")
     dofs, warm, checked = [], [], []
     for i, (name, cfg) in enumerate(rows):
@@ -280,7 +281,7 @@ def main_arrays(args) -> None:
             versions = [("after", here), ("before", args.before)]
             got = {v: _run_array_worker(code, name, refine) for v, code in (versions if i % 2 == 0 else versions[::-1])}
             m, old = got["after"], got["before"]
-            before = f"{old['warm_ms']:.2f}/{old['checked_ms']:.1f}"
+            before = f"{old['warm_ms']:.2f}/{old['checked_ms']:.1f}/{old['first'][0]:.2f}"
         else:
             m, before = _measure_row_of(name, cfg), None
         goal = ARRAY_TARGETS.get(name)
@@ -288,7 +289,7 @@ def main_arrays(args) -> None:
         first = f"{m['first'][0]:.2f} ({m['first'][1]}/{m['first'][2]})"
         print(f"{name:10s} {cfg.length * 1e3:4.0f}x{cfg.width * 1e3:<5.0f} {m['dofs']:7d} {m['mesh_s']:7.2f} "
               f"{first:>20s} {m['warm_ms']:8.2f} ({m['warm_its']:.1f}, {m['warm_facts']:.2f}) "
-              f"{m['checked_ms']:10.1f} " + (f"{before:>16s} " if before else "")
+              f"{m['checked_ms']:10.1f} " + (f"{before:>22s} " if before else "")
               + f"{goal_s:>16s} {ARRAY_BEFORE.get(name, ''):>22s}", flush=True)
         dofs.append(m["dofs"])
         warm.append(m["warm_ms"])
