@@ -171,10 +171,13 @@ class TwinNode(Node):
         self._twin = twin
         #: The reduced twin (model: rom) and its FE check, else None.
         self.rom_twin = twin if isinstance(twin, ReducedTwin) else None
+        #: The interpreter's switch interval before this node lowered it (restored by destroy_node), else None.
+        self._switch_interval = None
         if self.rom_twin is not None and self.update_rate > 0:
             # The solver thread needs the GIL for ~50 us of Python per update; with the default
             # 5 ms switch interval it can wait several ticks behind the executor's thread.
-            sys.setswitchinterval(min(sys.getswitchinterval(), 0.1 / self.update_rate))
+            self._switch_interval = sys.getswitchinterval()
+            sys.setswitchinterval(min(self._switch_interval, 0.1 / self.update_rate))
         self.fe_check = None
         if self.rom_twin is not None and check_rate > 0:
             self.fe_check = FeCheck(cfg, twin.rom.force_reference, twin.tolerance, check_rate, twin.request_resync,
@@ -323,6 +326,8 @@ class TwinNode(Node):
         if self.recorder is not None:
             self.recorder.close()
             self.recorder = None
+        if self._switch_interval is not None:
+            sys.setswitchinterval(self._switch_interval)
         super().destroy_node()
 
     # ---------------------------------------------------------------- callbacks (executor)

@@ -54,3 +54,15 @@ def test_node_refuses_a_rom_trained_for_another_config(coarse_rom):
     proc = subprocess.run([sys.executable, "-m", "dea_array_twin.ros.node", "--ros-args", "-p", "model:=rom"],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "rom_file" in proc.stderr
+
+
+def test_an_in_process_rom_node_lowers_the_switch_interval_only_while_it_lives(coarse_rom):
+    """The ROM node lowers the interpreter's switch interval for its solver thread; the process it
+    is embedded in gets its own back when the node is destroyed."""
+    cfg, rom, path, yaml_path = coarse_rom
+    before = sys.getswitchinterval()
+    params = {"config_file": str(yaml_path), "model": "rom", "rom_file": str(path), "update_rate": 200.0,
+              "fe_check_rate": 0.0, "marker_rate": 0.0}
+    with TwinHarness(parameters=params):
+        assert sys.getswitchinterval() == pytest.approx(0.1 / 200.0)
+    assert sys.getswitchinterval() == before
