@@ -30,6 +30,7 @@ Back ends:
 
 from __future__ import annotations
 
+import threading
 import weakref
 
 import numpy as np
@@ -44,17 +45,22 @@ BACKENDS = ("block", "block-uplooking", "superlu")
 #: Factorisers per pattern (shared by the twins of one geometry, see
 #: ``membrane._PATTERNS``) and set of free dofs: the symbolic analysis is pure data.
 _FACTORISERS: "weakref.WeakKeyDictionary[SparsePattern, dict]" = weakref.WeakKeyDictionary()
+_FACTORISERS_LOCK = threading.Lock()
 
 
 def factoriser(pattern: SparsePattern, free: np.ndarray, backend: str = "block") -> "Factoriser":
-    """The :class:`Factoriser` of ``free`` on ``pattern``, made once (a few of the newest kept)."""
-    cache = _FACTORISERS.setdefault(pattern, {})
+    """The :class:`Factoriser` of ``free`` on ``pattern``, made once (a few of the newest kept).
+
+    Thread-safe: a twin's background tangents (:class:`.twin.ArrayTwin`) ask for it from a
+    worker thread while the solver's thread may be adding or evicting an entry."""
     key = (free.tobytes(), backend)
-    if key not in cache:
-        if len(cache) >= 8:  # unit modes rarely change
-            cache.pop(next(iter(cache)))
-        cache[key] = Factoriser(pattern, free, backend)
-    return cache[key]
+    with _FACTORISERS_LOCK:
+        cache = _FACTORISERS.setdefault(pattern, {})
+        if key not in cache:
+            if len(cache) >= 8:  # unit modes rarely change
+                cache.pop(next(iter(cache)))
+            cache[key] = Factoriser(pattern, free, backend)
+        return cache[key]
 
 
 class LDLFactor:

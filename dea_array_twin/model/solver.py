@@ -389,15 +389,14 @@ class EquilibriumSolver:
         r, point = internal_forces(m.disc, x, *args)
         res = _residual(r, x, free, border)
         norm = _norm(res)
-        last_dx = np.inf
+        last_dx, converged = np.inf, False
         for _ in range(s.max_iterations):
             if cancel is not None and cancel():  # the cancel point: between iterations
                 raise SolveCancelled(f"solve cancelled after {stats.iterations} Newton iterations")
             if not np.isfinite(norm):
                 return None
-            peak = np.abs(res).max()
-            if last_dx <= x_tol and _balanced(res, free.size, r_tol, x_tol, fact, border, x):
-                stats.residual_norm = float(peak)
+            if converged:
+                stats.residual_norm = float(np.abs(res).max())
                 return x, r, point, fact
             if fact is None:
                 fact = self._factorise(self._tangent(x, maxwell), free, prescribed)
