@@ -28,6 +28,9 @@ reduce it.  The solver
 * may reuse the last factorisation for several iterations (modified Newton) and
   refactors when the residual falls by less than ``contraction`` per iteration
   (unless that iteration converged: a residual at its round-off floor does not contract);
+  in a load step that factors the tangent at its end anyway (a stability check), only
+  when the iterations the stale tangent still needs at that rate cost more than a
+  factorisation (:func:`_iterations_left`, ``factorisation_cost``);
 * converges when the residual is below ``residual_tol * force_scale`` and the
   remaining position error, estimated from the last increment and the residual
   reduction ratio ``q`` as ``|dx| q / (1 - q)``, is below
@@ -94,8 +97,16 @@ class NewtonSettings:
     contraction : float
         Required residual reduction factor per modified-Newton iteration.  0.3 is
         the cheapest of 0.02-0.5 over warm updates, curves and cold solves on the
-        1-by-3 (one factorisation costs about 15 iterations there; see
+        1-by-3 (one factorisation costs about 10-15 iterations there; see
         ``benchmarks/bench_core.py``); 0.5 kept stale tangents for up to 13 iterations.
+    factorisation_cost : float
+        What a factorisation with its tangent costs, in Newton iterations (a residual and
+        a solve with the factors): on the default 1-by-3 ~6.5 ms against ~0.65 ms.  In a
+        load step whose converged state is factored anyway (a stability check), a tangent
+        that contracts by less than ``contraction`` is refactored only when the residual
+        needs more iterations than this at the rate it falls (:func:`_iterations_left`):
+        the refactored tangent would serve that step only, the next one starts from the
+        check's.
     check_stability : bool
         Factor the tangent at the converged state and report its inertia.
     unstable_step : float
@@ -134,6 +145,7 @@ class NewtonSettings:
     max_step_cuts: int = 12
     modified_newton: bool = True
     contraction: float = 0.3
+    factorisation_cost: float = 10.0
     check_stability: bool = True
     unstable_step: float = 1.0 / 32.0
     long_jump: float = 0.1
@@ -373,8 +385,11 @@ class EquilibriumSolver:
     # ------------------------------------------------------------------ one step
     def _newton(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, maxwell: np.ndarray,
                 fact: Factorisation | None, stats: SolveStats, cancel: Callable[[], bool] | None = None,
-                border: IndenterBorder | None = None) -> tuple | None:
+                border: IndenterBorder | None = None, checked: bool = False) -> tuple | None:
         """Newton iterations at fixed prescribed values (and biased heights as unknowns: ``border``).
+
+        ``checked``: the converged state will be factored (a stability check), so a stale
+        tangent is refactored only when it would cost more iterations than a factorisation.
 
         Returns ``(x, r, point_state, factorisation)`` at convergence, None on failure.
         Raises :class:`SolveCancelled` when ``cancel()`` is true before an iteration.
@@ -438,7 +453,9 @@ class EquilibriumSolver:
             # about how good the tangent is, nor does one that ended converged (the residual
             # at its round-off floor contracts by nothing): the tangent stays for the next solve.
             converged = last_dx <= x_tol and _balanced(res, free.size, r_tol, x_tol, fact, border, x)
-            if not s.modified_newton or (ratio > s.contraction and not converged
+            stale = ratio > s.contraction and not (checked and _iterations_left(norm, r_tol, ratio)
+                                                   <= s.factorisation_cost)
+            if not s.modified_newton or (stale and not converged
                                          and not (border is not None and border.skipped_solve)):
                 fact = None
             fresh = False
@@ -552,7 +569,7 @@ class EquilibriumSolver:
             maxwell = m.maxwell(v0 + t * (v1 - v0))
             if border is not None:
                 border.start = border.heights(trial)
-            outcome = self._newton(trial, free, prescribed, maxwell, fact, stats, cancel, border)
+            outcome = self._newton(trial, free, prescribed, maxwell, fact, stats, cancel, border, check)
             if outcome is not None and border is not None and detect_snaps and self._jumped(border, outcome[0]):
                 if t - done > s.snap_step:  # maybe another branch: retry in halves
                     retries += 1
@@ -759,6 +776,19 @@ class EquilibriumSolver:
             if np.abs(step).max() <= 1e-3 * np.abs(dw).max():  # Newton's next step: ~(step / dw)^2 dw
                 break
         return dw
+
+
+def _iterations_left(norm: float, tol: float, ratio: float) -> float:
+    """Iterations a residual of norm ``norm`` needs to fall below ``tol`` at ``ratio`` per iteration.
+
+    A stale tangent converges linearly, ``|r_{k+n}| ~ ratio^n |r_k|``, so
+    ``n = log(tol / |r_k|) / log(ratio)``; infinite when it does not contract.
+    """
+    if norm <= tol:
+        return 0.0
+    if ratio >= 1.0:
+        return float("inf")
+    return float(np.log(tol / norm) / np.log(ratio))
 
 
 def _along(v: np.ndarray, u: np.ndarray, exact: bool = True) -> float | None:

@@ -252,12 +252,13 @@ def test_a_step_that_lands_on_a_saddle_is_retried_in_halves(make_twin, monkeypat
     twin = make_twin(NewtonSettings(check_stability=False), **COARSE)
     newton, calls = EquilibriumSolver._newton, []
 
-    def first_steps_without_predictor(self, x, free, prescribed, maxwell, fact, stats, cancel=None, border=None):
+    def first_steps_without_predictor(self, x, free, prescribed, maxwell, fact, stats, cancel=None, border=None,
+                                      checked=False):
         if len(calls) < 2:
             x = np.where(np.isin(np.arange(x.size), free), self.model.flat_state(), x)
             fact = None
         calls.append(fact)
-        return newton(self, x, free, prescribed, maxwell, fact, stats, cancel, border)
+        return newton(self, x, free, prescribed, maxwell, fact, stats, cancel, border, checked)
 
     factorise, negative = EquilibriumSolver._factorise, []
 
