@@ -65,6 +65,9 @@ class IndenterBorder:
 
     def __init__(self, units: np.ndarray, dofs: list[np.ndarray], groups: list[np.ndarray], load: IndenterLoad):
         self.units, self.dofs, self.groups, self.load = np.asarray(units, dtype=int), dofs, groups, load
+        self._first = np.array([d[0] for d in dofs], dtype=int)  # one z dof per disk: its height
+        self._all = np.concatenate(dofs) if dofs else np.zeros(0, dtype=int)
+        self._offsets = np.cumsum([0] + [d.size for d in dofs[:-1]])
         self.t = 1.0
         #: The heights [m] the Newton solve since :meth:`begin` starts from (after every
         #: predictor: a time integrator's guess, the load step's linear predictor, a
@@ -75,6 +78,8 @@ class IndenterBorder:
         self.outside: str | None = None
         #: Whether the last :meth:`direction` left the free residual alone (no ``K_ff`` solve).
         self.skipped_solve = False
+        #: The diagonal of ``S`` the last :meth:`direction` solved with [N/m].
+        self.step_stiffness: np.ndarray | None = None
         self._cache: tuple | None = None
 
     @classmethod
@@ -109,26 +114,37 @@ class IndenterBorder:
 
     def load_change(self, w: np.ndarray, t_from: float, t_to: float) -> np.ndarray:
         """``G(w, t_to) - G(w, t_from)`` [N] per unit at fixed heights ``w`` (the load step's change)."""
-        return np.array([self.load(k, wk, t_to)[0] - self.load(k, wk, t_from)[0] for k, wk in zip(self.units, w)])
+        return self.loads(w, t_to)[0] - self.loads(w, t_from)[0]
+
+    def loads(self, w: np.ndarray, t: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(G, dG/dw)`` [N, N/m] per unit at heights ``w`` and path fraction ``t`` (default: the current one).
+
+        Raises :class:`~.bias.BiasRangeError` outside a bias table."""
+        t = self.t if t is None else t
+        pairs = []
+        for k, wk in zip(self.units.tolist(), w.tolist()):
+            try:
+                pairs.append(self.load(k, wk, t))
+            except BiasRangeError as exc:
+                raise BiasRangeError(f"unit {k + 1}: {exc}") from None
+        return np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs])
 
     def heights(self, x: np.ndarray) -> np.ndarray:
         """The heights ``w_k`` [m] of the disks in ``x``."""
-        return np.array([x[d[0]] for d in self.dofs])
+        return x[self._first]
 
     def membrane_force(self, r: np.ndarray) -> np.ndarray:
         """``F_k = 1_k^T r_p`` [N] (eq. 10) from the internal forces ``r``."""
-        return np.array([r[d].sum() for d in self.dofs])
+        return np.add.reduceat(r[self._all], self._offsets)
 
     def residual(self, r: np.ndarray, x: np.ndarray) -> np.ndarray:
         """``R_w = F - G(w)`` [N]; NaN where ``w`` is outside a bias table (a failed trial)."""
-        g = []
-        for k, w in zip(self.units, self.heights(x)):
-            try:
-                g.append(self.load(k, w, self.t)[0])
-            except BiasRangeError as exc:
-                self.outside = f"unit {k + 1}: {exc}"
-                return np.full(self.units.size, np.nan)
-        return self.membrane_force(r) - np.array(g)
+        try:
+            g = self.loads(self.heights(x))[0]
+        except BiasRangeError as exc:
+            self.outside = str(exc)
+            return np.full(self.units.size, np.nan)
+        return self.membrane_force(r) - g
 
     def move(self, x: np.ndarray, dw: np.ndarray) -> None:
         """Raise the disks by ``dw`` [m] in ``x``, in place."""
@@ -161,11 +177,10 @@ class IndenterBorder:
         """``S = K_ww - K_wf K_ff^-1 K_fw - dG/dw`` at heights ``w`` (``static``: without inertial terms)
         and path fraction ``t`` (default: the current one)."""
         if static:
-            slope = [self.load.static_slope(k, wk) for k, wk in zip(self.units, w)]
+            slope = np.array([self.load.static_slope(k, wk) for k, wk in zip(self.units, w)])
         else:
-            t = self.t if t is None else t
-            slope = [self.load(k, wk, t)[1] for k, wk in zip(self.units, w)]
-        return self.membrane_stiffness(fact) - np.diag(slope)
+            slope = self.loads(w, t)[1]
+        return self._blocks(fact)[2] - np.diag(slope)
 
     def direction(self, fact, r_f: np.ndarray, r_w: np.ndarray, x: np.ndarray,
                   balanced: float = 0.0) -> tuple[np.ndarray, np.ndarray] | None:
@@ -182,9 +197,11 @@ class IndenterBorder:
             z = fact.solve(r_f)
             rhs = rhs + np.sum(kwf * z, axis=1)  # row sums, not BLAS: slow under load (see solver._norm)
         try:
-            dw = np.linalg.solve(self.schur(fact, self.heights(x)), rhs)
+            s = self.schur(fact, self.heights(x))
+            dw = np.linalg.solve(s, rhs)
         except (np.linalg.LinAlgError, BiasRangeError):
             return None
+        self.step_stiffness = np.diagonal(s)
         if self.first_dw is None:
             self.first_dw = dw
         dx = np.zeros(r_f.size) if self.skipped_solve else -z

@@ -227,6 +227,31 @@ def _energy(c, wt, maxwell, c10, c20, c30):
     return total
 
 
+@numba.njit(**_JIT)
+def _electrode_sums(c, weight, element_unit, area, peak):
+    """Per unit ``k``: ``area[k] = sum_q w_q det C_q`` and ``peak[k] = max_q det C_q`` over the points of
+    the elements with ``element_unit == k`` (passive ones, -1, skipped)."""
+    area[:] = 0.0
+    peak[:] = -np.inf
+    ne, nq, _ = c.shape
+    for e in range(ne):
+        k = element_unit[e]
+        if k < 0:
+            continue
+        for q in range(nq):
+            det = c[e, q, 0] * c[e, q, 1] - c[e, q, 2] ** 2
+            area[k] += weight[e, q] * det
+            peak[k] = max(peak[k], det)
+
+
+def electrode_sums(disc: Discretisation, point: PointState, n_units: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per unit: ``sum_q w_q det C_q`` over its electrode (the deformed area in the reference
+    thickness's units, eq. 7's integral) [m^2] and the largest ``det C`` there [-]."""
+    area, peak = np.empty(n_units), np.empty(n_units)
+    _electrode_sums(point.c, disc.weight, disc.mesh.element_unit, area, peak)
+    return area, peak
+
+
 def min_principal_stress(point: PointState, skip: np.ndarray) -> float:
     """Smallest principal Cauchy stress [Pa] over the elements where ``skip`` is False."""
     return float(_min_principal_stress(point.c, point.g, skip))

@@ -81,11 +81,11 @@ class MembraneModel:
         self.thickness = cfg.thickness
         self._dofs: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         mesh = self.mesh
-        self._unit_elements = [np.flatnonzero(mesh.element_unit == k) for k in range(cfg.n_units)]
+        electrodes = [np.flatnonzero(mesh.element_unit == k) for k in range(cfg.n_units)]
         self._disk_elements = [np.flatnonzero((mesh.element_unit == k) & mesh.element_in_indenter)
                                for k in range(cfg.n_units)]
         #: Reference area [m^2] of each unit's meshed electrode.
-        self.electrode_area = np.array([self.disc.weight[e].sum() for e in self._unit_elements])
+        self.electrode_area = np.array([self.disc.weight[e].sum() for e in electrodes])
         #: Capacitance [F] of each unit in the flat pre-stretched state (det C = lp^4),
         #: the reference of ``delta_capacitance``; without slip (gamma = 1) even when
         #: a slip table is configured.
@@ -239,18 +239,11 @@ class MembraneModel:
         outside driven disks.
         """
         mesh, cfg = self.mesh, self.cfg
-        c = point.c
-        det = c[..., 0] * c[..., 1] - c[..., 2] ** 2
-        weight_det = np.sum(self.disc.weight * det, axis=1)
+        cap, peak = kernels.electrode_sums(self.disc, point, self.n_units)
         z = forces.reshape(-1, 3)[:, 2]
-        cap = np.empty(self.n_units)
-        peak = np.empty(self.n_units)
         force = np.zeros(self.n_units)
         in_disks = np.zeros(mesh.n_elements, dtype=bool)
         for k, mode in enumerate(modes):
-            electrode = self._unit_elements[k]
-            cap[k] = weight_det[electrode].sum()
-            peak[k] = det[electrode].max()
             if held(mode):
                 force[k] = z[mesh.indenter_nodes[k]].sum()
                 in_disks[self._disk_elements[k]] = True

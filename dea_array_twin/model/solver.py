@@ -452,7 +452,7 @@ class EquilibriumSolver:
             # A step that left the free residual alone (only the heights moved) says nothing
             # about how good the tangent is, nor does one that ended converged (the residual
             # at its round-off floor contracts by nothing): the tangent stays for the next solve.
-            converged = last_dx <= x_tol and _balanced(res, free.size, r_tol, x_tol, fact, border, x)
+            converged = last_dx <= x_tol and _balanced(res, free.size, r_tol, x_tol, fact, border)
             stale = ratio > s.contraction and not (checked and _iterations_left(norm, r_tol, ratio)
                                                    <= s.factorisation_cost)
             if not s.modified_newton or (stale and not converged
@@ -762,16 +762,16 @@ class EquilibriumSolver:
         if path and last.before is not None and last.before.force_change is not None:
             ratio = _usable(_along(last.before.dw, u))
         before = last.before.force_change if ratio is not None else None
+        ku = stiffness @ u
         dw = np.zeros(u.size)
         for _ in range(4):
-            load = [border.load(k, wk, border.t) for k, wk in zip(border.units, w + dw)]
-            force, jacobian = stiffness @ dw, stiffness - np.diag([g[1] for g in load])
+            load, slope = border.loads(w + dw)
+            force, jacobian = stiffness @ dw, stiffness - np.diag(slope)
             if path:
                 lam = float(dw @ u) / norm2
-                force += _extrapolate(lam, ratio, last.force_change, before) - lam * (stiffness @ u)
-                jacobian += np.outer(_extrapolate(lam, ratio, last.force_change, before, slope=True)
-                                     - stiffness @ u, u) / norm2
-            step = np.linalg.solve(jacobian, np.array([g[0] for g in load]) - last.membrane_force - force)
+                force += _extrapolate(lam, ratio, last.force_change, before) - lam * ku
+                jacobian += np.outer(_extrapolate(lam, ratio, last.force_change, before, slope=True) - ku, u) / norm2
+            step = np.linalg.solve(jacobian, load - last.membrane_force - force)
             dw += step
             if np.abs(step).max() <= 1e-3 * np.abs(dw).max():  # Newton's next step: ~(step / dw)^2 dw
                 break
@@ -824,13 +824,13 @@ def _within_reach(scale: float, ratio: float | None) -> bool:
 
 
 def _balanced(res: np.ndarray, n_free: int, r_tol: float, x_tol: float, fact: Factorisation | None,
-              border: IndenterBorder | None, x: np.ndarray) -> bool:
+              border: IndenterBorder | None) -> bool:
     """Whether the residual ``res`` of :func:`_residual` is within the tolerances.
 
     Each free row within ``r_tol`` [N].  A biased height's row ``R_w`` is a force on the
     rigid disk: with ``S`` the heights' stiffness (membrane ``K_m``, bias and, in a Newmark
-    step, the inertial ``m / (beta dt^2)``; the diagonals of the factorisation's Schur
-    complement) it leaves a height error ``R_w / S`` and a membrane force error
+    step, the inertial ``m / (beta dt^2)``; the diagonal of the Schur complement of the
+    step that led to ``res``, :attr:`.indenters.IndenterBorder.step_stiffness`) it leaves a height error ``R_w / S`` and a membrane force error
     ``K_m R_w / S``.  The row converges when the first is within ``x_tol`` and the second
     within ``r_tol``, and always within ``r_tol`` itself.  In a quasi-static solve ``S`` is
     about ``K_m`` and the tolerance about ``r_tol``; in a Newmark step the inertial term
@@ -843,10 +843,10 @@ def _balanced(res: np.ndarray, n_free: int, r_tol: float, x_tol: float, fact: Fa
     r_w = np.abs(res[n_free:])
     if np.all(r_w <= r_tol):
         return True
-    if border is None or fact is None:
+    if border is None or border.step_stiffness is None:
         return False
-    s = np.abs(np.diag(border.schur(fact, border.heights(x))))
-    k_m = np.abs(np.diag(border.membrane_stiffness(fact)))
+    s = np.abs(border.step_stiffness)
+    k_m = np.abs(np.diagonal(border.membrane_stiffness(fact)))
     tol = np.maximum(r_tol, np.minimum(x_tol * s, r_tol * s / np.maximum(k_m, np.finfo(float).tiny)))
     return bool(np.all(r_w <= tol))
 
