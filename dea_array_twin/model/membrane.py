@@ -80,7 +80,12 @@ class MembraneModel:
         self.yeoh = cfg.yeoh
         self.thickness = cfg.thickness
         self._dofs: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._last_maxwell: tuple[bytes, np.ndarray] = (b"", np.zeros(0))  # (voltage's bytes, its coefficients)
         mesh = self.mesh
+        #: Frame positions without slip (eq. 8): the same for every solve.
+        self._frame_fixed = np.zeros((mesh.frame_nodes.size, 3))
+        self._frame_fixed[:, :2] = cfg.prestretch * mesh.nodes[mesh.frame_nodes]
+        self._frame_fixed.flags.writeable = False
         electrodes = [np.flatnonzero(mesh.element_unit == k) for k in range(cfg.n_units)]
         self._disk_elements = [np.flatnonzero((mesh.element_unit == k) & mesh.element_in_indenter)
                                for k in range(cfg.n_units)]
@@ -160,6 +165,8 @@ class MembraneModel:
 
         ``lx`` is :meth:`edge_stretch`: ``lp`` (eq. 8) or reduced by slip (eq. 11).
         """
+        if not self.cfg.slip_factor:
+            return self._frame_fixed  # read-only
         frame = self.mesh.frame_nodes
         out = np.zeros((frame.size, 3))
         out[:, :2] = np.array([self.edge_stretch(modes, displacement), self.cfg.prestretch]) * self.mesh.nodes[frame]
@@ -224,10 +231,19 @@ class MembraneModel:
         return kernels.energy(self.disc, point, self.yeoh, self.maxwell(voltage), self.thickness)
 
     def maxwell(self, voltage: np.ndarray) -> np.ndarray:
-        """Per element ``k = 0.5 eps0 epsr (V/t0)^2`` [Pa] of its unit, 0 on passive membrane."""
+        """Per element ``k = 0.5 eps0 epsr (V/t0)^2`` [Pa] of its unit, 0 on passive membrane (read-only).
+
+        The last voltage's array is kept: consecutive solves at one voltage share it."""
+        voltage = np.asarray(voltage, float)
+        key, last = self._last_maxwell
+        if key == voltage.tobytes():
+            return last
         unit = self.mesh.element_unit
-        per_unit = 0.5 * self.cfg.permittivity * (np.asarray(voltage, float) / self.thickness) ** 2
-        return np.where(unit >= 0, np.append(per_unit, 0.0)[unit], 0.0)
+        per_unit = 0.5 * self.cfg.permittivity * (voltage / self.thickness) ** 2
+        out = np.where(unit >= 0, np.append(per_unit, 0.0)[unit], 0.0)
+        out.flags.writeable = False
+        self._last_maxwell = (voltage.tobytes(), out)
+        return out
 
     def outputs(self, x: np.ndarray, forces: np.ndarray, point: PointState, voltage: np.ndarray,
                 modes: Sequence[str]) -> Outputs:
