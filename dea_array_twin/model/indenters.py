@@ -32,6 +32,7 @@ from typing import Protocol, Sequence
 import numpy as np
 
 from .bias import BiasRangeError
+from .kernels import solve_small
 
 
 class IndenterLoad(Protocol):
@@ -107,7 +108,7 @@ class IndenterBorder:
             change = self.load_change(w, t_from, self.t)
             if not change.any():
                 return
-            dw = np.linalg.solve(self.schur(fact, w), change)
+            dw = solve_small(self.schur(fact, w), change)
         except (np.linalg.LinAlgError, BiasRangeError):
             return
         self.move(x, dw)
@@ -198,7 +199,7 @@ class IndenterBorder:
             rhs = rhs + np.sum(kwf * z, axis=1)  # row sums, not BLAS: slow under load (see solver._norm)
         try:
             s = self.schur(fact, self.heights(x))
-            dw = np.linalg.solve(s, rhs)
+            dw = solve_small(s, rhs)
         except (np.linalg.LinAlgError, BiasRangeError):
             return None
         self.step_stiffness = np.diagonal(s)

@@ -252,6 +252,14 @@ def electrode_sums(disc: Discretisation, point: PointState, n_units: int) -> tup
     return area, peak
 
 
+@numba.njit(**_JIT)
+def solve_small(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a^-1 b`` for small dense systems (the biased heights' ``n_b x n_b``, :mod:`.indenters`):
+    LAPACK's gesv as in ``np.linalg.solve``, whose call costs ~10 us from Python, several times
+    the solve itself.  Raises ``numpy.linalg.LinAlgError`` if ``a`` is singular."""
+    return np.linalg.solve(a, b)
+
+
 def min_principal_stress(point: PointState, skip: np.ndarray) -> float:
     """Smallest principal Cauchy stress [Pa] over the elements where ``skip`` is False."""
     return float(_min_principal_stress(point.c, point.g, skip))

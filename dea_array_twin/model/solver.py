@@ -57,7 +57,7 @@ import numpy as np
 
 from .bias import BiasRangeError
 from .indenters import IndenterBorder, IndenterLoad, negative_eigenvalues
-from .kernels import internal_forces, tangent_values
+from .kernels import internal_forces, solve_small, tangent_values
 from .linsolve import BACKENDS, Factoriser, LDLFactor, factoriser
 from .membrane import BIASED, DRIVEN, MembraneModel, held
 from .snap import Snap, land_after_snap
@@ -771,7 +771,7 @@ class EquilibriumSolver:
                 lam = float(dw @ u) / norm2
                 force += _extrapolate(lam, ratio, last.force_change, before) - lam * ku
                 jacobian += np.outer(_extrapolate(lam, ratio, last.force_change, before, slope=True) - ku, u) / norm2
-            step = np.linalg.solve(jacobian, load - last.membrane_force - force)
+            step = solve_small(jacobian, load - last.membrane_force - force)
             dw += step
             if np.abs(step).max() <= 1e-3 * np.abs(dw).max():  # Newton's next step: ~(step / dw)^2 dw
                 break

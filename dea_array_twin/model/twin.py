@@ -43,6 +43,7 @@ from .actuator import ActuatorLoad, UnitLoad, free_flight, rest_position
 from .bias import NoBias
 from .config import ArrayConfig
 from .dynamics import NewmarkStep
+from .kernels import solve_small
 from .membrane import BIASED, DRIVEN, FREE, MembraneModel, held
 from .snap import Snap
 from .solver import ConvergenceError, EquilibriumSolver, Factorisation, NewtonSettings, SolveCancelled, SolveStats
@@ -271,12 +272,13 @@ class ArrayTwin:
 
         The first solve of a process compiles them otherwise: ~10 s on the first run after
         an install, ~0.3 s later.  A live twin calls this before its first update.  It
-        makes one checked solve with every unit driven to 1 mm at 0 V, then :meth:`reset`:
-        the twin is left as a new one.
+        makes one checked solve with every unit driven to 1 mm at 0 V and one of the small dense
+        systems of biased units' heights, then :meth:`reset`: the twin is left as a new one.
         """
         n = self.n_units
         self.solve(np.full(n, min(1e-3, 0.1 * self.config.scaled("max_displacement"))), np.zeros(n),
                    modes=(DRIVEN,) * n, check_stability=True, force=np.zeros(n))
+        solve_small(np.eye(1), np.ones(1))
         self.reset()
 
     @property
