@@ -830,9 +830,10 @@ def _balanced(res: np.ndarray, n_free: int, r_tol: float, x_tol: float, fact: Fa
     Each free row within ``r_tol`` [N].  A biased height's row ``R_w`` is a force on the
     rigid disk: with ``S`` the heights' stiffness (membrane ``K_m``, bias and, in a Newmark
     step, the inertial ``m / (beta dt^2)``; the diagonal of the Schur complement of the
-    step that led to ``res``, :attr:`.indenters.IndenterBorder.step_stiffness`) it leaves a height error ``R_w / S`` and a membrane force error
-    ``K_m R_w / S``.  The row converges when the first is within ``x_tol`` and the second
-    within ``r_tol``, and always within ``r_tol`` itself.  In a quasi-static solve ``S`` is
+    step that led to ``res``, :attr:`.indenters.IndenterBorder.step_stiffness`) it leaves a
+    height error ``R_w / S`` and a membrane force error ``K_m R_w / S``.  The row converges
+    when the first is within ``x_tol`` and the second within ``r_tol``, and always within
+    ``r_tol`` itself.  In a quasi-static solve ``S`` is
     about ``K_m`` and the tolerance about ``r_tol``; in a Newmark step the inertial term
     (5000 N/m for 5 g at 2 ms, against a membrane's ~60 N/m) makes the force ``R_w`` some 80
     times more sensitive to the height than the membrane is, and holding it to ``r_tol``
