@@ -69,7 +69,7 @@ setup(
     # is not inside a function is here (and in package.xml); mcap >= 1.5 for
     # Writer.flush, which closes a chunk on demand (the recorder's durability).
     # test/test_dependencies.py imports every module with only these installed.
-    install_requires=['numpy', 'scipy', 'numba', 'threadpoolctl', 'gmsh', 'pyyaml', 'tqdm', 'mcap>=1.5',
+    install_requires=['numpy', 'scipy', 'numba', 'gmsh', 'pyyaml', 'tqdm', 'mcap>=1.5',
                       'mcap-ros2-support'],
     # Optional, imported where used, with a message naming the extra when missing.
     extras_require={

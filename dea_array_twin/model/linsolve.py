@@ -15,8 +15,7 @@ Back ends:
 * ``"block"`` (the default): :mod:`.multifrontal`, compiled, on the 3x3 node blocks
   of ``K_ff`` in a minimum-degree node ordering (SuperLU's MMD on the node graph, once,
   then an elimination-tree postorder) with relaxed supernodes; dense fronts, the inertia
-  from the 3x3 pivots as it runs.  Its large update matrices are BLAS ``dgemm`` calls
-  (scipy's BLAS), which this module pins to one thread (:func:`one_blas_thread`).
+  from the 3x3 pivots as it runs.
 * ``"block-uplooking"``: the same factorisation one 3x3 block at a time (:mod:`.ldl`,
   the up-looking algorithm of QDLDL): the reference the tests compare ``"block"``
   with.  On the default 1-by-3 mesh it factors in about 0.4x and solves in about 0.4x
@@ -31,8 +30,6 @@ Back ends:
 
 from __future__ import annotations
 
-import functools
-import os
 import threading
 import weakref
 
@@ -49,29 +46,6 @@ BACKENDS = ("block", "block-uplooking", "superlu")
 #: ``membrane._PATTERNS``) and set of free dofs: the symbolic analysis is pure data.
 _FACTORISERS: "weakref.WeakKeyDictionary[SparsePattern, dict]" = weakref.WeakKeyDictionary()
 _FACTORISERS_LOCK = threading.Lock()
-
-
-@functools.cache
-def one_blas_thread() -> None:
-    """Run the BLAS that scipy calls in one thread, for the rest of the process (once).
-
-    The multifrontal factorisation calls scipy's ``dgemm`` (:mod:`.multifrontal`).
-    OpenBLAS would split a large product over every core and its threads would spin on the
-    core that the node's other threads (or another factorisation) need: on the 2-core
-    development machine, under load, that made an 8-by-8 factorisation 5x slower.  Only
-    the library scipy links is limited (a pip install's ``scipy.libs``; numpy's own
-    OpenBLAS keeps its threads); when none is recognised as scipy's (a system scipy
-    sharing one BLAS with numpy), every BLAS in the process is.
-    """
-    import scipy.linalg.cython_blas  # noqa: F401  (loads scipy's BLAS)
-    from threadpoolctl import ThreadpoolController
-
-    controller = ThreadpoolController().select(user_api="blas")
-    paths = [lib.filepath for lib in controller.lib_controllers]
-    scipy_libs = [p for p in paths if os.path.basename(os.path.dirname(p)) == "scipy.libs"]
-    if scipy_libs:
-        controller = controller.select(filepath=scipy_libs)
-    controller.limit(limits=1)
 
 
 def factoriser(pattern: SparsePattern, free: np.ndarray, backend: str = "block") -> "Factoriser":
@@ -127,8 +101,6 @@ class Factoriser:
         self.backend = backend if whole_nodes else "superlu"
         if self.backend != "superlu":
             self._symbolic(nodes)
-        if self.backend == "block":
-            one_blas_thread()
 
     def _symbolic(self, nodes: np.ndarray) -> None:
         """Node ordering, elimination tree, supernodes, fronts and value maps (once per free set)."""

@@ -19,12 +19,11 @@ is partially factored over ``J`` with 3x3 block pivots (Schur complement, with
     D_k = F(k, k),   L(i, k) = F(i, k) D_k^-1,   F(i, j) -= L(i, k) W(j, k)^T  (i, j > k),
 
 and what is left on ``R`` is its update matrix ``U_s = F(R, R)``, passed to its
-parent (the large ones computed as BLAS matrix products, :func:`_update_matrix`).  In the
-postorder a parent comes right after its last child, so the fronts of consecutive
-supernodes alternate between two buffers and the last child's ``U_s`` is read from its own
-front; only the other children's are copied to a stack (the
+parent.  In the postorder a parent comes right after its last child, so the fronts of
+consecutive supernodes alternate between two buffers and the last child's ``U_s`` is
+read from its own front; only the other children's are copied to a stack (the
 children of the next supernode are always on top).  Only the lower block triangle of
-a front is read.  ``L`` comes out in the
+a front is stored or updated.  ``L`` comes out in the
 block-column layout of :mod:`.ldl` (the same ``lp``/``li``, so :func:`.ldl.solve`
 solves with it), and the negative eigenvalues are counted from the pivots of each
 ``D_k`` as there (Sylvester's law of inertia).
@@ -34,31 +33,10 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from numba import types
-from numba.np.linalg import ensure_blas
 
 from .ldl import invert_pivot
 
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
-
-ensure_blas()  # scipy's BLAS, which numba's helper below calls
-#: ``dgemm`` through numba's own helper (the one its ``np.dot`` calls: scipy's BLAS found at
-#: run time, so the functions calling it stay cacheable): ``(kind, transa, transb, m, n, k,
-#: alpha, a, lda, b, ldb, beta, c, ldc)``, column-major, returns 0 or -1 if no BLAS.
-_XXGEMM = types.ExternalFunction("numba_xxgemm", types.intc(
-    types.char, types.char, types.char, types.intp, types.intp, types.intp, types.CPointer(types.float64),
-    types.CPointer(types.float64), types.intp, types.CPointer(types.float64), types.intp,
-    types.CPointer(types.float64), types.CPointer(types.float64), types.intp))
-_D, _NOTRANS = np.int8(ord("d")), np.int8(ord("n"))
-#: A panel of an update matrix is a BLAS call when the front has at least this many pivot
-#: columns and the panel this many entries; smaller ones run the rank-3 loops (on a 60 by 60
-#: front with 6 pivot columns both take 2.4-2.5 us; 3 and 256 or 9 and 512 measured the same
-#: as these within the noise).
-GEMM_MIN_PIVOTS = 6
-GEMM_MIN_ENTRIES = 512
-#: Rows per ``dgemm`` call of an update matrix (a multiple of 3; on the 4-by-4, 24 factored as
-#: fast as 18, 2-6 % faster than 30, 36 or 48 and ~15 % faster than 96).
-PANEL = 24
 
 
 @numba.njit(**_JIT)
@@ -231,39 +209,6 @@ def _update_block(f, r, t, wt, first, end):
         r2[j] -= a20 * x0 + a21 * x1 + a22 * x2
 
 
-@numba.njit(**_JIT)
-def _update_matrix(front, size, pivots, wt_flat, ldw, scalars):
-    """The update matrix ``F(R, R) -= L(R, J) W(R, J)^T`` (lower block triangle), ``J`` the first
-    ``pivots`` rows and columns of the front, ``R`` the rest.
-
-    ``front`` is the front ``F`` flat (row stride ``size``), ``wt_flat`` holds ``W^T`` (row
-    stride ``ldw``), ``scalars`` ``alpha = -1`` and ``beta = 1``.  The rows of ``R`` go in
-    panels of :data:`PANEL`; a panel ``I`` and its columns up to the end of its diagonal
-    block, ``F(I, R_0:I_end) -= F(I, J) W^T(J, R_0:I_end)``, is one BLAS ``dgemm``
-    (row-major ``F`` is column-major ``F^T``: ``C -= A B`` with ``A = W^T`` and ``B =
-    F(I, J)^T``).  It also writes the panel's diagonal block above the block diagonal,
-    which nothing reads (:func:`factor` zeroes it first, so the values are defined).  A
-    panel with fewer than :data:`GEMM_MIN_PIVOTS` pivot columns or :data:`GEMM_MIN_ENTRIES`
-    entries runs the rank-3 loops of :func:`_update_block` instead, on the lower block
-    triangle only.
-    """
-    f = front[:size * size].reshape((size, size))
-    wt = wt_flat.reshape((wt_flat.size // ldw, ldw))
-    for p0 in range(pivots, size, PANEL):
-        p1 = min(p0 + PANEL, size)
-        width = p1 - pivots
-        if pivots >= GEMM_MIN_PIVOTS and width * (p1 - p0) >= GEMM_MIN_ENTRIES:
-            status = _XXGEMM(_D, _NOTRANS, _NOTRANS, width, p1 - p0, pivots, scalars[0:].ctypes,
-                             wt_flat[pivots:].ctypes, ldw, front[p0 * size:].ctypes, size,
-                             scalars[1:].ctypes, front[p0 * size + pivots:].ctypes, size)
-            if status != 0:
-                raise RuntimeError("scipy's BLAS dgemm is not available")
-        else:
-            for r in range(p0, p1, 3):
-                for t in range(0, pivots, 3):
-                    _update_block(f, r, t, wt, pivots, r + 3)
-
-
 @numba.njit(inline="always", **_JIT)
 def _extend_add(f, src, base, stride, rows, position):
     """Add the update matrix stored at ``src[base:]`` (row stride ``stride``, lower block triangle)
@@ -291,9 +236,7 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
     n_super = start.size - 1
     position = np.empty(start[-1], np.int64)  # a node's block row in the current front
     buffers = np.empty((2, largest * largest))  # fronts of consecutive supernodes alternate
-    wt_flat = np.empty(largest * largest)  # W^T of the current front's pivot columns
-    wt = wt_flat.reshape((largest, largest))
-    scalars = np.array([-1.0, 1.0])  # dgemm's alpha and beta
+    wt = np.empty((largest, largest))  # W^T of the current front's pivot columns
     stack = np.empty(max(stack_size, 1))
     offset = np.empty(n_super, np.int64)
     waiting = np.empty(n_super, np.int64)
@@ -309,9 +252,6 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
             position[nodes[t]] = t
         for r in range(size):  # lower block triangle, diagonal blocks in full
             for j in range(3 * (r // 3) + 3):
-                f[r, j] = 0.0
-        for r in range(pivots, size):  # and the rest of each update panel's diagonal block (see _update_matrix)
-            for j in range(3 * (r // 3) + 3, min(size, pivots + ((r - pivots) // PANEL + 1) * PANEL)):
                 f[r, j] = 0.0
         for j in range(first, first + ncol):  # K's columns
             c = 3 * (j - first)
@@ -351,7 +291,9 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
                     f[r, c + b] = w0 * dk[0, b] + w1 * dk[1, b] + w2 * dk[2, b]
             for r in range(c + 3, size, 3):  # the rest of the pivot columns
                 _update_block(f, r, c, wt, c + 3, min(pivots, r + 3))
-        _update_matrix(buffers[s % 2], size, pivots, wt_flat, largest, scalars)  # F(R, R) -= L(R, J) W(R, J)^T
+        for r in range(pivots, size, 3):  # update matrix F(R, R) -= L(R, J) W(R, J)^T
+            for t in range(0, pivots, 3):
+                _update_block(f, r, t, wt, pivots, r + 3)
         for k in range(ncol):  # L's block columns
             q = lp[first + k]
             for t in range(k + 1, m):
