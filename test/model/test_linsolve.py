@@ -165,3 +165,37 @@ def test_coupling_to_a_rigid_disk_move_equals_the_column_sum_of_k_fp():
     expected = np.asarray(fact.k_fp[:, idx].sum(axis=1)).ravel()
     np.testing.assert_allclose(fact.coupling(idx), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
     assert np.abs(expected).max() > 0
+
+
+@pytest.mark.parametrize("below", [0, 25])
+def test_large_fronts_give_the_reference_factor_and_inertia(below):
+    """A 20-by-20 grid of nodes coupled through quadrilaterals (all 3x3 blocks), whose top
+    fronts are larger than the membrane meshes' in the other tests.  K: random couplings
+    (|row sum| < 2) on a diagonal of +-10 with ``below`` negative entries, so by Gershgorin
+    exactly ``below`` negative eigenvalues (numpy's eigvalsh agrees); the multifrontal
+    factorisation counts them and solves K x = b as the up-looking reference to 1e-12 of |x|."""
+    from dea_array_twin.model.assembly import SparsePattern
+
+    side = 20
+    node = np.arange(side * side).reshape(side, side)
+    quads = np.stack([node[:-1, :-1], node[1:, :-1], node[1:, 1:], node[:-1, 1:]], axis=-1).reshape(-1, 4)
+    n_dofs = 3 * side * side
+    pattern = SparsePattern((3 * quads[:, :, None] + np.arange(3)).reshape(-1, 12), n_dofs)
+    mask = pattern.block(np.ones(pattern.rows.size), np.arange(n_dofs), np.arange(n_dofs)).toarray()
+    rng = np.random.default_rng(16)
+    k = 0.05 * mask * rng.uniform(-1.0, 1.0, (n_dofs, n_dofs))
+    k = k + k.T - np.diag(np.diag(k))
+    diagonal = np.full(n_dofs, 10.0)
+    diagonal[rng.choice(n_dofs, below, replace=False)] = -10.0
+    k[np.diag_indices(n_dofs)] = diagonal
+    assert np.abs(k - np.diag(diagonal)).sum(axis=1).max() < 2.0
+    assert np.count_nonzero(np.linalg.eigvalsh(k) < 0) == below
+    values = k[pattern.rows, pattern.cols]
+
+    ours = Factoriser(pattern, np.arange(n_dofs), "block").factor(values)
+    reference = Factoriser(pattern, np.arange(n_dofs), "block-uplooking").factor(values)
+    assert ours.negative_pivots() == reference.negative_pivots() == below
+    b = rng.standard_normal(n_dofs)
+    x_ours, x_ref = ours.solve(b), reference.solve(b)
+    assert np.abs(x_ours - x_ref).max() <= 1e-12 * np.abs(x_ref).max()
+    assert np.abs(k @ x_ours - b).max() <= 1e-9 * np.abs(k).max() * np.abs(x_ours).max()
