@@ -370,7 +370,7 @@ class ArrayTwin:
             If no equilibrium is found; the twin keeps its previous state.
         SolveCancelled
             ``cancel()`` returned True; the twin keeps its previous state (positions,
-            command, modes; the next solve starts with a fresh tangent there).
+            command, modes, and the tangent it held).
         ValueError
             For a command of the wrong length or with NaN/inf.
         """
@@ -410,13 +410,16 @@ class ArrayTwin:
         """Solve (``dt`` None) or step to the commands; commit the state only when it succeeded.
 
         After a failure (:class:`ConvergenceError`, :class:`SolveCancelled`) the solver's
-        tangent is one of a state on the way, not of the state kept: the next solve
-        factors afresh."""
+        tangent may be one of a state on the way, not of the state kept: the solver gets back
+        the one it started from (a node that abandons solves past their budget would otherwise
+        pay a factorisation at the start of the next one, ~5-10 ms, which makes it overrun
+        again)."""
         self._collect_tangent()
+        start_tangent = self.solver.factorisation
         try:
             result = self._attempt(d1, v1, f1, modes, check, dt, tic, cancel)
         except (ConvergenceError, SolveCancelled):
-            self.solver.factorisation = None
+            self.solver.factorisation = start_tangent
             raise
         if (self._pool is not None and self._pending is None and result.iterations >= BACKGROUND_ITERATIONS
                 and result.factorisations == 0 and BIASED not in self._held):
