@@ -558,13 +558,13 @@ class EquilibriumSolver:
                 for group, rest in zip(border.groups, dw - dw_along):
                     change[group] = rest
             if t == 1.0 and done == 0.0 and secant is not None:  # the last solve's path, continued
-                scale, dx_last, dp_last, dx_along = secant
+                scale, dx_last, dp_last, dx_along, dp_along = secant
                 if fact.state is not None and fact.state is self._last_path.end:  # tangent at x: quadratic
                     trial[free] += (scale + scale**2) * fact.predict(dp_last, groups) - scale**2 * dx_last
                     change = change - scale * dp_last
                 else:
                     trial[free] += dx_along
-                    change = change - scale * dp_last
+                    change = change - dp_along
             trial[free] += fact.predict(change, groups)  # linear predictor from the last tangent
             maxwell = m.maxwell(v0 + t * (v1 - v0))
             if border is not None:
@@ -658,8 +658,9 @@ class EquilibriumSolver:
 
     def _secant(self, x: np.ndarray, free: np.ndarray, prescribed: np.ndarray, d0: np.ndarray, d1: np.ndarray,
                 v0: np.ndarray, v1: np.ndarray, modes: tuple[str, ...]) -> tuple | None:
-        """``(s, dx_f, dp, dx_along)`` when this solve continues the last one: same free dofs and
-        voltage, starting where it ended, the prescribed change ``s dp`` plus a remainder.
+        """``(s, dx_f, dp, dx_along, dp_along)`` when this solve continues the last one: same free
+        dofs and voltage, starting where it ended, the prescribed change ``dp_along`` (``s dp``, or
+        a point of the curve through the last commands) plus a remainder.
 
         The last solve moved the free dofs by ``dx_f`` for a prescribed change ``dp``; with
         ``s = <dp_new, dp> / <dp, dp>`` the prediction ``x_f + s dx_f + T (dp_new - s dp)``
@@ -670,6 +671,10 @@ class EquilibriumSolver:
         quadratic through the three states (:func:`_extrapolate`), third order (the states of a
         solve without biased units are a function of the command, so a turn between them is
         no harm as long as the three are apart: :func:`_usable`, :func:`_within_reach`).
+        When the two steps were not along one direction (units moving with different phases,
+        the node's command stream), the new command is first placed on the quadratic through
+        the last three commands (:func:`_on_command_curve`), and the states are extrapolated to
+        that point of it: third order there too, where ``s dx_f`` was second order.
         """
         last = self._last_path
         if last is None or not np.array_equal(v0, v1) or not last.continues(x, free, v0):
@@ -682,9 +687,14 @@ class EquilibriumSolver:
             return None
         before = last.before
         ratio = _usable(_along(before.dp, dp)) if before is not None and before.dp.shape == dp.shape else None
+        if ratio is None and before is not None and before.dp.shape == dp.shape:
+            curve = _on_command_curve(dp_new, dp, before.dp, scale)
+            if curve is not None:
+                lam, a, dp_along = curve
+                return scale, last.dx_f, dp, _extrapolate(lam, a, last.dx_f, before.dx_f), dp_along
         if ratio is None or not _within_reach(scale, ratio):
-            return scale, last.dx_f, dp, scale * last.dx_f
-        return scale, last.dx_f, dp, _extrapolate(scale, ratio, last.dx_f, before.dx_f)
+            return scale, last.dx_f, dp, scale * last.dx_f, scale * dp
+        return scale, last.dx_f, dp, _extrapolate(scale, ratio, last.dx_f, before.dx_f), scale * dp
 
     def _heights_secant(self, load_change: np.ndarray) -> tuple | None:
         """``(dx_f, dw, dw)`` when this solve continues the last one (:meth:`PathRecord.continues`) with
@@ -789,6 +799,34 @@ def _iterations_left(norm: float, tol: float, ratio: float) -> float:
     if ratio >= 1.0:
         return float("inf")
     return float(np.log(tol / norm) / np.log(ratio))
+
+
+def _on_command_curve(dp_new: np.ndarray, dp: np.ndarray, dp_before: np.ndarray,
+                      scale: float) -> tuple[float, float, np.ndarray] | None:
+    """``(lambda, a, P(lambda))``: the point of the command curve through the last three commands
+    nearest to the new one, for :func:`_extrapolate` of the states to it.
+
+    The last two prescribed changes ``dp_before`` and ``dp`` (not along one direction) are
+    chords of a curve; with chord-length spacing ``a = |dp_before| / |dp|`` the quadratic through
+    the three commands is, as in :func:`_extrapolate`,
+
+        P(lambda) = lambda dp + lambda (lambda + 1) D2,    D2 = (dp - dp_before / a) / (1 + a),
+
+    and ``lambda`` minimises ``|P(lambda) - dp_new|`` (three Gauss-Newton steps from the
+    projection ``scale``).  None when the chords are too unequal (:func:`_usable`) or
+    ``lambda`` is out of reach (:func:`_within_reach`).
+    """
+    a = _usable(float(np.sqrt(np.sum(dp_before * dp_before) / np.sum(dp * dp))))
+    if a is None:
+        return None
+    curvature = (dp - dp_before / a) / (1.0 + a)
+    lam = scale
+    for _ in range(3):
+        slope = dp + (2.0 * lam + 1.0) * curvature
+        lam -= float(np.sum(slope * (lam * dp + lam * (lam + 1.0) * curvature - dp_new)) / np.sum(slope * slope))
+    if not (np.isfinite(lam) and _within_reach(lam, a)):
+        return None
+    return lam, a, lam * dp + lam * (lam + 1.0) * curvature
 
 
 def _along(v: np.ndarray, u: np.ndarray, exact: bool = True) -> float | None:

@@ -5,6 +5,7 @@ import pytest
 from conftest import COARSE, FREE_CENTRE
 
 from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
+from dea_array_twin.model import solver
 from dea_array_twin.model.solver import _iterations_left
 
 
@@ -17,7 +18,7 @@ def _prediction_errors(states: tuple[float, ...], target: float) -> tuple[float,
     x = twin._x
     prescribed, free = twin.model.prescribed_dofs(FREE_CENTRE)
     command = np.array([0.0, target, 0.0])
-    scale, dx, _, along = twin.solver._secant(x, free, prescribed, command, command, np.zeros(3), np.zeros(3),
+    scale, dx, _, along, _ = twin.solver._secant(x, free, prescribed, command, command, np.zeros(3), np.zeros(3),
                                               FREE_CENTRE)
     twin.solve(command, 0.0, FREE_CENTRE)
     reached = twin._x[free]
@@ -94,3 +95,30 @@ def test_a_checked_curve_refactors_only_where_a_stale_tangent_costs_more_than_a_
     assert work[10.0] < work[0.0]
     assert all(a.force[1] == pytest.approx(b.force[1], rel=1e-6) for a, b in zip(old, new))
     assert [r.stable for r in new] == [r.stable for r in old] == [True] * 16
+
+
+def test_units_moving_out_of_phase_continue_on_the_curve_through_the_last_commands(monkeypatch):
+    """The node's command stream: every unit driven on a 1 Hz sine, a third of a period apart, a
+    command every 2 ms (coarse 1-by-3, V = 0).  Consecutive steps are not along one direction, so
+    the quadratic along the last step alone did not apply; placing the new command on the curve
+    through the last three (:func:`_on_command_curve`) and extrapolating the states to it takes at
+    most 0.7x the Newton iterations of the secant with the tangent for the rest (measured: 1.53
+    against 2.70 per update) and reaches the same equilibria (forces to 1e-6 of a cold solve's)."""
+    def stream(twin: ArrayTwin) -> tuple[float, np.ndarray]:
+        its = []
+        for i in range(60):
+            t = i / 500.0
+            res = twin.solve([0.005 + 0.004 * np.sin(2 * np.pi * (t + k / 3.0)) for k in range(3)], 0.0,
+                             ("driven",) * 3)
+            its.append(res.iterations)
+        return float(np.mean(its[3:])), res.force
+
+    settings = NewtonSettings(check_stability=False)
+    curve_its, curve_force = stream(ArrayTwin(ArrayConfig(**COARSE), settings))
+    monkeypatch.setattr(solver, "_on_command_curve", lambda *args: None)
+    secant_its, secant_force = stream(ArrayTwin(ArrayConfig(**COARSE), settings))
+    cold = ArrayTwin(ArrayConfig(**COARSE), settings).solve(
+        [0.005 + 0.004 * np.sin(2 * np.pi * (59 / 500.0 + k / 3.0)) for k in range(3)], 0.0, ("driven",) * 3)
+    assert curve_its <= 0.7 * secant_its
+    np.testing.assert_allclose(curve_force, cold.force, rtol=1e-6)
+    np.testing.assert_allclose(secant_force, cold.force, rtol=1e-6)
