@@ -813,17 +813,23 @@ def _on_command_curve(dp_new: np.ndarray, dp: np.ndarray, dp_before: np.ndarray,
         P(lambda) = lambda dp + lambda (lambda + 1) D2,    D2 = (dp - dp_before / a) / (1 + a),
 
     and ``lambda`` minimises ``|P(lambda) - dp_new|`` (three Gauss-Newton steps from the
-    projection ``scale``).  None when the chords are too unequal (:func:`_usable`) or
+    projection ``scale``, on the five dot products of ``dp``, ``D2`` and ``dp_new``: with
+    ``c = 2 lambda + 1`` and ``e = lambda^2 + lambda``, ``P' = dp + c D2`` and the step is
+    ``P'.(P - dp_new) / P'.P'``).  None when the chords are too unequal (:func:`_usable`) or
     ``lambda`` is out of reach (:func:`_within_reach`).
     """
-    a = _usable(float(np.sqrt(np.sum(dp_before * dp_before) / np.sum(dp * dp))))
+    aa = float(np.sum(dp * dp))
+    a = _usable(float(np.sqrt(np.sum(dp_before * dp_before) / aa)))
     if a is None:
         return None
     curvature = (dp - dp_before / a) / (1.0 + a)
+    ad, dd = float(np.sum(dp * curvature)), float(np.sum(curvature * curvature))
+    ab, db = float(np.sum(dp * dp_new)), float(np.sum(curvature * dp_new))
     lam = scale
     for _ in range(3):
-        slope = dp + (2.0 * lam + 1.0) * curvature
-        lam -= float(np.sum(slope * (lam * dp + lam * (lam + 1.0) * curvature - dp_new)) / np.sum(slope * slope))
+        c, e = 2.0 * lam + 1.0, lam * (lam + 1.0)
+        along = lam * aa + e * ad - ab + c * (lam * ad + e * dd - db)
+        lam -= along / (aa + 2.0 * c * ad + c * c * dd)
     if not (np.isfinite(lam) and _within_reach(lam, a)):
         return None
     return lam, a, lam * dp + lam * (lam + 1.0) * curvature
