@@ -39,11 +39,13 @@ class RomMismatchError(ValueError):
     """A ROM does not belong to the configuration (or the file format) it is used with."""
 
 
-#: Config fields that bound, label or choose commands without changing the model's equations
-#: (the node may change the first three at run time): a ROM does not depend on them.  The unit
-#: modes it answers are those of its envelope; others go to the FE.
+#: Config fields that bound, label or choose commands, or describe what lies outside the membrane,
+#: without changing the membrane's equations (the node may change the first three at run time): a
+#: ROM does not depend on them.  The unit modes it answers are those of its envelope, and biased
+#: units where it has driven ones (the bias elements, masses, damping and contact of biased units
+#: act on the indenter heights, which the reduced twin solves for); others go to the FE.
 UNCHECKED_FIELDS = ("max_displacement", "breakdown_field", "unit_modes", "experimental_hv_prestretch",
-                    "experimental_hv_voltage")
+                    "experimental_hv_voltage", "bias", "mass", "damping", "contact")
 
 
 def _model_fields(cfg: ArrayConfig) -> dict:
@@ -82,8 +84,8 @@ class Envelope:
         """The same displacement range [m] for every driven unit and voltage range [V] for every unit."""
         modes = check_modes(modes, len(modes))
         if any(m not in (DRIVEN, FREE) for m in modes):
-            raise ValueError(f"a ROM envelope holds driven and free units only (biased units are not reduced "
-                             f"yet), got modes {list(modes)}")
+            raise ValueError(f"a ROM envelope holds driven and free units only (train a biased unit as driven: "
+                             f"the reduced twin solves for its height), got modes {list(modes)}")
         n = len(modes)
         lo, hi = float(displacement[0]), float(displacement[1])
         vlo, vhi = float(voltage[0]), float(voltage[1])
@@ -260,12 +262,17 @@ class ReducedModel:
 
 
 def check_config(rom: ReducedModel, cfg: ArrayConfig) -> None:
-    """Refuse ``rom`` unless it was trained on exactly ``cfg``; the error names the fields that differ."""
+    """Refuse ``rom`` unless it was trained on exactly ``cfg``; the error names the fields that differ.
+
+    The stored hash is the fast path; a ROM whose hash differs while every model field
+    agrees (one stamped when :data:`UNCHECKED_FIELDS` was shorter) is accepted."""
     if rom.config_hash == config_hash(cfg):
         return
     ours = _model_fields(cfg)
     differ = sorted(k for k in (set(ours) | set(rom.config)) - set(UNCHECKED_FIELDS)
                     if ours.get(k) != rom.config.get(k))
+    if not differ:
+        return
     detail = ", ".join(f"{k}: ROM {rom.config.get(k)!r}, config {ours.get(k)!r}" for k in differ[:6])
     raise RomMismatchError(f"the ROM was trained for another configuration (hash {rom.config_hash}, this config "
-                           f"{config_hash(cfg)}); differing fields: {detail or 'none (other version)'}")
+                           f"{config_hash(cfg)}); differing fields: {detail}")

@@ -39,6 +39,17 @@ and the indicator is the largest ``|delta F_k| / F_ref_k`` or ``|delta C_u| / C_
 indicator above ``tolerance``, or a reduced Newton that fails is answered by the FE twin
 (``result.fallback`` says why; :attr:`ReducedTwin.fallbacks` counts them), and the
 reduced state is resynchronised from the FE state.
+
+**Biased units** (issue 11's actuator mode) on a ROM trained with them driven: the
+indenter displacement ``d_k``, an input of the ROM, becomes the unknown height ``w_k``
+of ``F_k(q(d), d) = G_k(w_k)``, ``G_k = B_k(w_k) + f_k`` (and ``- m a(w) - c v(w)`` in a
+Newmark time step, :mod:`.dynamics`), solved by Newton on the heights with the
+condensed stiffness ``K = H_dd - H_dq H_qq^-1 H_qd`` of the refreshed Hessian, each
+iterate one reduced update (:meth:`ReducedTwin._balance`); a predictor from that
+tangent puts the first iterate at the new equilibrium to first order, so that a
+control-loop step costs one evaluation.  Heights outside the trained range, a limit
+point (``K - dG/dw`` not positive definite: snap-through), an indenter with contact
+that would pull, and heights that do not converge go to the FE.
 """
 
 from __future__ import annotations
@@ -53,12 +64,22 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .config import ArrayConfig
+from .actuator import UnitLoad
+from .bias import BiasRangeError
+from .config import BIASED, DRIVEN, ArrayConfig
+from .dynamics import NewmarkStep
+from .kernels import solve_small
 from .reduced import ReducedModel, RomMismatchError, check_config
 from .rom_build import held_elements
 from .rom_kernels import classify, evaluate, hessian, point_maps, reduced_tangent, update
 from .solver import ConvergenceError, NewtonSettings, SolveCancelled
 from .twin import ArrayTwin, TwinResult
+
+#: Why the FE answered an update (:attr:`ReducedTwin.fallbacks`' keys, as ``result.fallback`` starts).
+FALLBACKS = ("envelope", "indicator", "newton", "snap", "contact")
+#: Reduced updates (evaluations) one solve may spend on the heights of its biased units
+#: before the FE answers it (a warm update takes one or two).
+MAX_HEIGHT_ITERATIONS = 8
 
 
 def _recover(reference: np.ndarray, vectors: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -94,12 +115,47 @@ class ReducedResult(TwinResult):
 
 
 class _Tangent:
-    """The reduced Hessian at one state and what an update derives from it (:func:`.rom_kernels.reduced_tangent`)."""
+    """The reduced Hessian at one state and what an update derives from it (:func:`.rom_kernels.reduced_tangent`).
+
+    ``outputs`` holds the outputs' sensitivities to the inputs ``p = (d, m)`` with ``q`` kept at
+    the reduced equilibrium, ``dO/dp = dO/dp|_q + dO/dq dq/dp``; its driven block is the
+    condensed stiffness of the indenters,
+
+        K = dF/dd = H_dd - H_dq H_qq^-1 H_qd,
+
+    and ``centre`` the centre deflections' sensitivities to ``d``.
+    """
 
     def __init__(self, twin: "ReducedTwin", hz: np.ndarray, hm: np.ndarray):
         self.stable, self.arrays = reduced_tangent(hz, hm, twin._nd, twin.rom.n_modes, twin._cap_factor,
                                                    twin._output_scale)
         self.hqq_inv = self.arrays[1]
+        nd, sensitivity, out_q = twin._nd, self.arrays[0], self.arrays[2]
+        direct = np.zeros(out_q.shape[:1] + sensitivity.shape[1:])  # dO/dp at fixed q: F = dE/dd, C ~ -dE/dm
+        direct[:nd, :nd] = hz[1:1 + nd, 1:1 + nd]
+        direct[:nd, nd:] = hm[1:1 + nd]
+        direct[nd:, :nd] = -twin._cap_factor * hm[1:1 + nd].T
+        self.outputs = direct + out_q @ sensitivity
+        self.centre = twin._centre[:, 1:1 + nd] + twin._centre[:, 1 + nd:] @ sensitivity[:, :nd]
+
+
+class _Refused(Exception):
+    """The reduced model cannot answer this update: the FE does (``kind`` counts it, the message says why)."""
+
+    def __init__(self, kind: str, reason: str):
+        super().__init__(reason)
+        self.kind = kind
+
+
+def _positive_definite(a: np.ndarray) -> bool:
+    """Whether the small symmetric matrix ``a`` is positive definite."""
+    if a.shape[0] == 1:
+        return bool(a[0, 0] > 0.0)
+    try:
+        np.linalg.cholesky(a)
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 class ReducedTwin:
@@ -139,7 +195,11 @@ class ReducedTwin:
     Attributes
     ----------
     fallbacks : Counter
-        Updates the FE answered, by reason: ``"envelope"``, ``"indicator"``, ``"newton"``.
+        Updates the FE answered, by reason (:data:`FALLBACKS`): ``"envelope"`` (also a biased height
+        outside the trained range), ``"indicator"``, ``"newton"`` (also biased heights that do
+        not converge), ``"snap"`` (a biased equilibrium at a limit point: ``K - dG/dw`` not
+        positive definite) and ``"contact"`` (an indenter with unilateral contact that would
+        pull, or is lifted off).
     updates, evaluations, refreshes, resyncs : int
         Reduced updates answered, gradient evaluations, Hessian refreshes and restarts
         from an FE state (:meth:`request_resync`) so far.
@@ -161,6 +221,9 @@ class ReducedTwin:
         self.modes = env.modes
         self._driven = env.driven
         self._nd = nd = self._driven.size
+        self._slot = np.full(self.n_units, -1)  # each driven unit's place among the displacement inputs
+        self._slot[self._driven] = np.arange(nd)
+        self._biased_of: dict[tuple, np.ndarray | None] = {self.modes: self._driven[:0]}
         self._nc = 1 + nd + rom.n_modes
         self._vectors = np.ascontiguousarray(np.hstack([rom.lift, rom.basis]))
         full = np.hstack([rom.reference[:, None], self._vectors])
@@ -191,9 +254,9 @@ class ReducedTwin:
         self._breakdown = cfg.breakdown_field
         self._flat_capacitance = model.flat_capacitance
         self._reference = rom.reference
-        self._zeros = np.zeros(self.n_units)  # velocity, bias and external force: no biased units, quasi-static
+        self._zeros = np.zeros(self.n_units)  # velocity, bias and external force without biased units
         self._zeros.flags.writeable = False
-        self._none = np.zeros(self.n_units, dtype=bool)  # lifted_off: no contact without biased units
+        self._none = np.zeros(self.n_units, dtype=bool)  # lifted_off: the reduced model answers units in contact
         self._none.flags.writeable = False
         self.tolerance = float(tolerance if tolerance is not None else rom.tolerance)
         self.second_step = float(second_step if second_step is not None else min(1e-3, self.tolerance))
@@ -241,8 +304,12 @@ class ReducedTwin:
         self.fe.reset()
         n = self.n_units
         self._modes = self.modes
-        self._displacement = np.zeros(n)
+        self._displacement = np.zeros(n)  # driven: command, biased: height w, free: centre deflection [m]
         self._voltage = np.zeros(n)
+        self._force = np.zeros(n)  # commanded external force on biased indenters [N]
+        self._forces = np.zeros(n)  # indenter forces of the last reduced result [N] (the heights' predictor)
+        self._lifted = np.zeros(n, dtype=bool)  # indenters an FE answer found lifted off
+        self._velocity = self._acceleration = self._zeros  # dw/dt [m/s], d2w/dt2 [m/s^2] (Newmark state)
         self._z = np.zeros(self._nc)
         self._z[0] = 1.0
         self._maxwell = np.zeros(n)
@@ -253,6 +320,7 @@ class ReducedTwin:
         self._refresh_next = False
         self._pending: Future | None = None  # a background refresh from before is dropped
         self.last: TwinResult | None = None
+        self._fe_answer: TwinResult | None = None  # the last result the FE gave (its state is the twin's)
 
     # ------------------------------------------------------------------ pieces
     def _command(self, name: str, values, default: np.ndarray) -> np.ndarray:
@@ -358,8 +426,11 @@ class ReducedTwin:
     def _apply_resync(self) -> None:
         result, self._resync = self._resync, None
         d, v = np.asarray(result.displacement, float), np.asarray(result.voltage, float)
-        if tuple(result.modes) == self.modes and self.rom.envelope.violation(d, v, result.modes) is None:
+        biased = self._biased_units(tuple(result.modes))
+        if biased is not None and self.rom.envelope.violation(d, v, self.modes) is None:
             self._project(np.asarray(result.positions).ravel(), d, v)
+            self._displacement = self._displacement.copy()
+            self._displacement[biased] = d[biased]  # a biased unit's height is state: the FE's
             self.resyncs += 1
 
     # ------------------------------------------------------------------ solve
@@ -371,14 +442,14 @@ class ReducedTwin:
 
         Answered by the reduced model inside the envelope, by the FE otherwise
         (``result.fallback`` says why).  ``modes`` defaults to the previous ones (the
-        trained modes after :meth:`reset`).  ``check_stability`` (default False)
-        refreshes the reduced Hessian at the new state and reports whether it is
-        positive definite.  ``cancel`` is asked between reduced Newton iterations (a
+        trained modes after :meth:`reset`); a unit trained as driven may be ``"biased"``
+        (its height solved for, :meth:`_balance`), with its bias law, ``contact`` from the
+        config and ``force`` the external force on its indenter [N] (default: the previous
+        one).  ``check_stability`` (default False) refreshes the reduced Hessian at the new
+        state and reports whether it is positive definite (with biased units: and the
+        condensed ``K - dB/dw``).  ``cancel`` is asked between reduced Newton iterations (a
         jump or a cold start) and by an FE fallback; when it returns True the solve
         raises :class:`SolveCancelled` and the twin keeps its previous state.
-        ``force`` (external forces on biased indenters [N]) only matters to an FE
-        fallback: the reduced model has no biased units (a mode set with one is
-        outside every envelope).
 
         Raises
         ------
@@ -390,37 +461,199 @@ class ReducedTwin:
         SolveCancelled
             When ``cancel`` asked for it.
         """
+        return self._advance(displacement, voltage, force, modes, check_stability, cancel, None)
+
+    def step(self, dt: float, displacement: Sequence[float] | float | None = None,
+             voltage: Sequence[float] | float | None = None, force: Sequence[float] | float | None = None,
+             modes: Sequence[str] | None = None, check_stability: bool | None = None,
+             cancel: Callable[[], bool] | None = None) -> TwinResult:
+        """Advance the dynamics by ``dt`` [s] with the commands held at their new values (see :meth:`.ArrayTwin.step`).
+
+        Biased units with ``mass > 0`` move by ``m w'' + c w' = B(w) + f - F(w, V)``
+        (Newmark average acceleration, :mod:`.dynamics`): their generalised force in
+        :meth:`_balance` is ``G = B + f - m a(w) - c v(w)``, so ``K - dG/dw`` gains the
+        inertial stiffness ``m / (beta dt^2)``; the membrane and massless units are
+        quasi-static.  An update the reduced model cannot answer is a step of the FE twin
+        from the reduced state (:meth:`.ArrayTwin.adopt`).
+        """
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a finite time step > 0 s, got {dt}")
+        return self._advance(displacement, voltage, force, modes, check_stability, cancel, float(dt))
+
+    def _advance(self, displacement, voltage, force, modes, check_stability: bool | None,
+                 cancel: Callable[[], bool] | None, dt: float | None) -> TwinResult:
+        """A solve (``dt`` None) or a time step to the commands, by the reduced model or the FE."""
         tic = time.perf_counter()
         if self._resync is not None:
             self._apply_resync()
         d1 = self._command("displacement", displacement, self._displacement)
         v1 = self._command("voltage", voltage, self._voltage)
+        f1 = self._command("force", force, self._force)
         modes = self._modes if modes is None else tuple(modes)
+        biased = self._biased_units(modes)
+        outside = False
+        if biased is not None and biased.size:  # the heights start where they are (a guess: kept in the envelope)
+            d1[biased] = np.clip(self._displacement[biased], self._lo[biased], self._hi[biased])
+            outside = bool(np.any(d1[biased] != self._displacement[biased]))
         code, far = classify(d1, v1, self._limit, self._bounds, self._tangent_at, self._refresh_step)
-        if code == 1:
-            raise ValueError(f"displacement and voltage must be finite, got {d1.tolist()} m, {v1.tolist()} V")
+        if code == 1 or not np.isfinite(f1).all():
+            raise ValueError(f"displacement, voltage and force must be finite, got {d1.tolist()} m, "
+                             f"{v1.tolist()} V, {f1.tolist()} N")
         if code == 2:
             raise ValueError(f"displacement {d1.tolist()} m exceeds max_displacement ({self._limit} m)")
-        if code == 3 or modes != self.modes:
+        if code == 3 or biased is None:
             modes = self.model.check_modes(modes)
-            reason = self.rom.envelope.violation(d1, v1, modes) or "outside the envelope"
-            return self._fallback("envelope", reason, d1, v1, modes, check_stability, cancel, tic, force=force)
+            reason = self.rom.envelope.violation(d1, v1, modes if biased is None else self.modes)
+            reason = reason or "outside the envelope"
+            return self._fallback("envelope", reason, d1, v1, modes, check_stability, cancel, tic, f1, dt)
         try:
-            result = self._reduced(d1, v1, far, bool(check_stability), cancel, tic)
+            result = self._reduced(d1, v1, far, bool(check_stability), cancel, tic, modes, biased, f1, dt)
         except SolveCancelled:
             raise
         except ConvergenceError as exc:
-            return self._fallback("newton", str(exc), d1, v1, modes, check_stability, cancel, tic)
+            return self._fallback("newton", str(exc), d1, v1, modes, check_stability, cancel, tic, f1, dt)
+        except _Refused as exc:  # from heights outside the envelope a refusal is the envelope's, whatever it says
+            kind, reason = ("envelope", f"biased heights start outside the envelope ({exc})") if outside else (
+                exc.kind, str(exc))
+            return self._fallback(kind, reason, d1, v1, modes, check_stability, cancel, tic, f1, dt)
         if result.error_indicator > self.tolerance:
             return self._fallback("indicator", f"error indicator {result.error_indicator:.3g} above tolerance "
-                                  f"{self.tolerance:.3g}", d1, v1, modes, check_stability, cancel, tic,
+                                  f"{self.tolerance:.3g}", d1, v1, modes, check_stability, cancel, tic, f1, dt,
                                   indicator=result.error_indicator)
         self.updates += 1
         self.last = result
         return result
 
+    def answers(self, modes: Sequence[str]) -> bool:
+        """Whether the reduced model can answer unit ``modes``: its trained modes, with any unit trained as
+        driven made biased (other modes go to the FE)."""
+        return self._biased_units(tuple(modes)) is not None
+
+    def _biased_units(self, modes: tuple) -> np.ndarray | None:
+        """The biased units of ``modes`` (empty for the trained modes), or None if the ROM cannot answer them:
+        it answers its trained modes with any unit trained as driven made biased."""
+        units = self._biased_of.get(modes)
+        if units is None and modes not in self._biased_of:
+            fits = len(modes) == self.n_units and all(
+                m == e or (m == BIASED and e == DRIVEN) for m, e in zip(modes, self.modes))
+            units = np.array([k for k, m in enumerate(modes) if m == BIASED], dtype=np.int64) if fits else None
+            self._biased_of[modes] = units
+        return units
+
+    def _loads(self, units: np.ndarray, f1: np.ndarray, dt: float | None) -> list[UnitLoad]:
+        """What pushes each biased indenter of ``units`` (:class:`.UnitLoad`): its bias law and external force,
+        and in a time step of ``dt`` [s] the inertia and damping of a unit with mass (:class:`.NewmarkStep`)."""
+        cfg = self._config
+        laws, mass, damping = cfg.per_unit("bias"), cfg.per_unit("mass"), cfg.per_unit("damping")
+        return [UnitLoad(laws[k], f1[k], f1[k], newmark=None if dt is None or mass[k] <= 0 else NewmarkStep(
+            mass[k], damping[k], dt, self._displacement[k], self._velocity[k], self._acceleration[k]))
+            for k in units]
+
+    @staticmethod
+    def _push(loads: list[UnitLoad], w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``G_k(w_k)`` [N] and ``dG_k/dw_k`` [N/m] of each load at the heights ``w`` [m]."""
+        g, dg = np.empty(len(loads)), np.empty(len(loads))
+        try:
+            for i, load in enumerate(loads):
+                g[i], dg[i] = load(w[i], 1.0)
+        except BiasRangeError as exc:
+            raise _Refused("envelope", f"bias table: {exc}") from None
+        return g, dg
+
+    def _update(self, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.ndarray, m1: np.ndarray,
+                result: np.ndarray, info: np.ndarray, cancel: Callable[[], bool] | None) -> tuple[int, int]:
+        """One reduced update of ``z`` to ``(d1, v1)`` (:func:`.rom_kernels.update`), converged with refreshed
+        Hessians when it is a jump; returns (evaluations, refreshes)."""
+        update(self._points, z, m0, d1, v1, self._layout, self._tangent.arrays, self._cap_factor, self.second_step,
+               self._buffers, m1, result, info)
+        self.evaluations += int(info[4])
+        evals, refreshes = int(info[4]), 0
+        self._refresh_next = info[5] > 0.0
+        if info[6] > self.second_step:  # a jump: the last correction still moved an output, so converge
+            more, refreshes = self._settle(z, m1, True, cancel)  # (counts its own evaluations)
+            update(self._points, z, m1, d1, v1, self._layout, self._tangent.arrays, self._cap_factor,
+                   self.second_step, self._buffers, m1, result, info)
+            self.evaluations += int(info[4])
+            evals += more + int(info[4])
+        return evals, refreshes
+
+    def _balance(self, z: np.ndarray, m1: np.ndarray, d1: np.ndarray, v1: np.ndarray, result: np.ndarray,
+                 info: np.ndarray, units: np.ndarray, loads: list[UnitLoad],
+                 cancel: Callable[[], bool] | None) -> tuple[int, int]:
+        """Solve for the heights ``w = d1[units]`` of the biased units: ``F_k(q(d), d) = G_k(w_k)``; returns
+        (evaluations, refreshes).
+
+        Newton on the heights with the reduced equilibrium in ``q`` at each iterate (one
+        :meth:`_update`, usually one evaluation) and the condensed stiffness of the last
+        refreshed Hessian, ``K = H_dd - H_dq H_qq^-1 H_qd`` (:class:`_Tangent`):
+
+            dw = (K - dG/dw)^-1 (G(w) - F(w)).
+
+        When the residual is within ``second_step`` of each unit's force scale the last
+        step is applied to the state and the outputs to first order (``z``, ``q`` by
+        ``dq/dd``, outputs by ``dO/dd``), without another evaluation.  ``K - dG/dw`` not
+        positive definite at an iterate (a limit point: snap-through or an unstable
+        equilibrium), no convergence in :data:`MAX_HEIGHT_ITERATIONS` or heights
+        outside the envelope: :class:`_Refused`, and the FE answers.
+        """
+        slots = self._slot[units]
+        scale = self._output_scale[slots]
+        evals = refreshes = 0
+        for _ in range(MAX_HEIGHT_ITERATIONS):
+            tangent = self._tangent
+            w = d1[units]
+            g, dg = self._push(loads, w)
+            residual = g - result[0, units]
+            stiffness = tangent.outputs[np.ix_(slots, slots)] - np.diag(dg)
+            if not _positive_definite(stiffness):
+                raise _Refused("snap", f"units {(units + 1).tolist()} at heights {w.tolist()} m: K - dG/dw is "
+                                       "not positive definite (a limit point: snap-through or instability)")
+            dw = solve_small(stiffness, residual)
+            if not np.isfinite(dw).all():
+                break
+            if np.all(np.abs(residual) <= self.second_step * scale):
+                self._shift(tangent, z, d1, result, info, units, slots, dw)
+                return evals, refreshes
+            d1[units] = w + dw
+            more, refreshed = self._update(z, m1.copy(), d1, v1, m1, result, info, cancel)
+            evals, refreshes = evals + more, refreshes + refreshed
+        raise ConvergenceError(f"the heights of biased units {(units + 1).tolist()} did not converge in "
+                               f"{MAX_HEIGHT_ITERATIONS} reduced updates")
+
+    def _shift(self, tangent: _Tangent, z: np.ndarray, d1: np.ndarray, result: np.ndarray, info: np.ndarray,
+               units: np.ndarray, slots: np.ndarray, dw: np.ndarray) -> None:
+        """Move the biased heights by ``dw`` with ``q`` and the outputs to first order (in place)."""
+        nd = self._nd
+        info[0] += result[0, units] @ dw  # dE = F dw at the reduced equilibrium
+        d1[units] += dw
+        z[1 + slots] += dw
+        z[1 + nd:] += tangent.arrays[0][:, slots] @ dw
+        result[0, self._driven] += tangent.outputs[:nd, slots] @ dw
+        result[1] += tangent.outputs[nd:, slots] @ dw
+        result[2] += tangent.centre[:, slots] @ dw
+        result[3] = result[2]
+        result[3, self._driven] = d1[self._driven]
+
+    def _predict(self, z: np.ndarray, m0: np.ndarray, v1: np.ndarray, d1: np.ndarray, units: np.ndarray,
+                 loads: list[UnitLoad]) -> None:
+        """Move the biased heights ``d1[units]`` to where the last tangent puts the equilibrium at the new command:
+        ``(K - dG/dw) dw = G(w0) - F(w0) - dF/dp dp``, ``dp`` the change of the other inputs (in place)."""
+        tangent, nd = self._tangent, self._nd
+        slots = self._slot[units]
+        dp = np.concatenate([d1[self._driven] - z[1:1 + nd], self._maxwell_factor * v1 * v1 - m0])
+        w = d1[units]
+        g, dg = self._push(loads, w)
+        stiffness = tangent.outputs[np.ix_(slots, slots)] - np.diag(dg)
+        dw = solve_small(stiffness, g - self._forces[units] - tangent.outputs[slots] @ dp)
+        if np.isfinite(dw).all():
+            d1[units] = w + dw
+
     def _reduced(self, d1: np.ndarray, v1: np.ndarray, far: bool, check: bool, cancel: Callable[[], bool] | None,
-                 tic: float) -> ReducedResult:
+                 tic: float, modes: tuple, units: np.ndarray, f1: np.ndarray, dt: float | None) -> ReducedResult:
+        if self._lifted.any():
+            raise _Refused("contact", f"the indenters of units {(np.flatnonzero(self._lifted) + 1).tolist()} are "
+                                      "lifted off: the FE answers until they touch down")
+        loads = self._loads(units, f1, dt) if units.size else []
         z = self._z.copy()
         m0 = self._maxwell
         evals = refreshes = 0
@@ -433,46 +666,94 @@ class ReducedTwin:
             refreshes = self._collect_refresh()
             if far or self._refresh_next:
                 refreshes += self._request_refresh(z, m0)
+            if units.size:
+                self._predict(z, m0, v1, d1, units, loads)
         m1, result, info = np.empty(self.n_units), np.empty((5, self.n_units)), np.empty(7)
-        update(self._points, z, m0, d1, v1, self._layout, self._tangent.arrays, self._cap_factor, self.second_step,
-               self._buffers, m1, result, info)
-        self.evaluations += int(info[4])
-        evals += int(info[4])
-        self._refresh_next = info[5] > 0.0
-        if info[6] > self.second_step:  # a jump: the last correction still moved an output, so converge
-            more, refreshed = self._settle(z, m1, True, cancel)
-            update(self._points, z, m1, d1, v1, self._layout, self._tangent.arrays, self._cap_factor,
-                   self.second_step, self._buffers, m1, result, info)
-            self.evaluations += int(info[4])
-            evals, refreshes = evals + more + int(info[4]), refreshes + refreshed
+        more, refreshed = self._update(z, m0, d1, v1, m1, result, info, cancel)
+        evals, refreshes = evals + more, refreshes + refreshed
+        bias_force = self._zeros
+        if units.size:
+            more, refreshed = self._balance(z, m1, d1, v1, result, info, units, loads, cancel)
+            evals, refreshes = evals + more, refreshes + refreshed
+            self._check_heights(d1, units)
+            bias_force = np.zeros(self.n_units)
+            bias_force[units] = [load.law.force(w) for load, w in zip(loads, d1[units])]
+        self._check_contact(result[0])
         stable = None
         if check:
-            stable = self._refresh(z, m1).stable
+            tangent = self._refresh(z, m1)
             refreshes += 1
+            slots = self._slot[units]
+            dg = [load.law.slope(w) for load, w in zip(loads, d1[units])]
+            stable = tangent.stable and _positive_definite(tangent.outputs[np.ix_(slots, slots)] - np.diag(dg))
+        velocity, acceleration = self._zeros, self._zeros
+        if dt is not None:
+            velocity, acceleration = (result[3] - self._displacement) / dt, np.zeros(self.n_units)
+            for k, load in zip(units, loads):
+                if load.newmark is not None:
+                    velocity[k], acceleration[k] = load.newmark.velocity(d1[k]), load.newmark.acceleration(d1[k])
+        self._velocity, self._acceleration = velocity, acceleration
         self._z, self._maxwell, self._voltage, self._displacement = z, m1, v1, result[3]
+        self._modes, self._force, self._forces = modes, f1, result[0]
         peak, sigma_min = result[4], float(info[1])
+        external = self._zeros
+        if units.size:
+            external = np.zeros(self.n_units)
+            external[units] = f1[units]
         return ReducedResult(
-            displacement=result[3].copy(), voltage=v1, modes=self.modes, force=result[0], capacitance=result[1],
+            displacement=result[3].copy(), voltage=v1, modes=modes, force=result[0], capacitance=result[1],
             delta_capacitance=result[1] - self._flat_capacitance, centre_deflection=result[2], peak_field=peak,
             energy=float(info[0]), min_principal_stress=sigma_min, wrinkled=sigma_min < 0,
             field_exceeded=bool(peak.max() > self._breakdown), stable=stable, iterations=evals,
             factorisations=refreshes, step_cuts=0, residual=float(info[3]), solve_time=time.perf_counter() - tic,
-            velocity=self._zeros, bias_force=self._zeros, external_force=self._zeros, lifted_off=self._none, snaps=(),
+            velocity=velocity, bias_force=bias_force, external_force=external, lifted_off=self._none, snaps=(),
             error_indicator=float(info[2]), recover=functools.partial(_recover, self._reference, self._vectors, z[1:]))
+
+    def _check_heights(self, d1: np.ndarray, units: np.ndarray) -> None:
+        """Refuse biased heights outside the trained displacement range."""
+        w, lo, hi = d1[units], self._lo[units], self._hi[units]
+        slack = 1e-9 * (hi - lo)
+        out = np.flatnonzero((w < lo - slack) | (w > hi + slack))
+        if out.size:
+            k = units[out[0]]
+            raise _Refused("envelope", f"height {d1[k]:.6g} m of biased unit {k + 1} outside the trained "
+                                       f"[{self._lo[k]:.6g}, {self._hi[k]:.6g}] m")
+
+    def _check_contact(self, force: np.ndarray) -> None:
+        """Refuse a state where an indenter with unilateral ``contact`` would pull the membrane: it lifts off
+        (:class:`.ArrayTwin` releases it; the reduced model has its disk held)."""
+        contact = self._config.per_unit("contact")
+        if not any(contact):
+            return
+        tolerance = self.fe.solver.settings.residual_tol * self.model.force_scale
+        pulling = [k for k in range(self.n_units) if contact[k] and force[k] < -tolerance]
+        if pulling:
+            raise _Refused("contact", f"the indenters of units {[k + 1 for k in pulling]} would pull the "
+                                      f"membrane ({force[pulling].tolist()} N): lift-off")
 
     def _fallback(self, kind: str, reason: str, d1: np.ndarray, v1: np.ndarray, modes: tuple,
                   check_stability: bool | None, cancel: Callable[[], bool] | None, tic: float,
-                  indicator: float = math.nan, force=None) -> ReducedResult:
-        """Answer with the FE; resynchronise the reduced state from it when the command is in the envelope."""
-        res = self.fe.solve(d1, v1, modes, check_stability, cancel=cancel, force=force)
+                  f1: np.ndarray, dt: float | None, indicator: float = math.nan) -> ReducedResult:
+        """Answer with the FE, from the reduced state if the reduced model answered last (the FE's path, its
+        snap detection and a time step start where the twin is); resynchronise the reduced state from it
+        when the command is in the envelope."""
+        if self.last is not None and self.last is not self._fe_answer:  # the reduced model answered last
+            self.fe.adopt(self.last, self._acceleration)
+        if dt is None:
+            res = self.fe.solve(d1, v1, modes, check_stability, cancel=cancel, force=f1)
+        else:
+            res = self.fe.step(dt, d1, v1, f1, modes, check_stability, cancel=cancel)
+        self._velocity, self._acceleration = np.array(res.velocity), self.fe.acceleration
         self.fallbacks[kind] += 1
-        self._modes, self._displacement, self._voltage = res.modes, res.displacement.copy(), v1
-        if kind != "envelope":
-            self._project(res.positions.ravel(), d1, v1)
+        self._modes, self._displacement, self._voltage, self._force = res.modes, res.displacement.copy(), v1, f1
+        self._lifted = np.asarray(res.lifted_off, dtype=bool).copy()
+        if kind not in ("envelope", "contact"):
+            self._project(res.positions.ravel(), res.displacement, v1)
         else:
             self._projected = False
         self._cold = True
         values = {f.name: getattr(res, f.name) for f in fields(TwinResult)}
         values["solve_time"] = time.perf_counter() - tic
-        self.last = ReducedResult(error_indicator=indicator, fallback=f"{kind}: {reason}", **values)
+        self.last = self._fe_answer = ReducedResult(error_indicator=indicator, fallback=f"{kind}: {reason}",
+                                                    **values)
         return self.last

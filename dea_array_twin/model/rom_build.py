@@ -209,8 +209,8 @@ def build_reduced_model(model: MembraneModel, envelope: Envelope, snaps: Snapsho
     say = progress or (lambda text: None)
     modes = envelope.modes
     if any(m not in (DRIVEN, FREE) for m in modes):
-        raise ValueError(f"a ROM holds driven and free units only (biased units are not reduced yet), "
-                         f"got {list(modes)}")
+        raise ValueError(f"a ROM is trained with driven and free units only (a biased unit is trained as driven: "
+                         f"the reduced twin solves for its height), got {list(modes)}")
     n = snaps.positions.shape[0]
     if not 1 <= n_modes <= n:
         raise ValueError(f"n_modes must be in [1, {n}] (the number of snapshots), got {n_modes}")

@@ -307,6 +307,32 @@ class ArrayTwin:
         self._pending_over: Factorisation | None = None  # the tangent it is to replace
         self.last: TwinResult | None = None
 
+    @property
+    def acceleration(self) -> np.ndarray:
+        """``d2w/dt2`` of each biased indenter with mass after the last :meth:`step` [m/s^2] (else 0)."""
+        return self._acceleration.copy()
+
+    def adopt(self, result: TwinResult, acceleration: Sequence[float] | None = None) -> None:
+        """Continue from ``result``, a state of this array from another model (the reduced twin's, whose FE
+        fallback of a time step starts where the reduced model left off).
+
+        Positions, commands, modes, heights, velocities, lift-offs and ``acceleration``
+        [m/s^2] (default 0) become the twin's state; the next solve or step starts from it
+        with a fresh tangent."""
+        self._x = np.asarray(result.positions, dtype=float).ravel().copy()
+        self._lifted = np.asarray(result.lifted_off, dtype=bool).copy()
+        self._modes = self.model.check_modes(result.modes)
+        self._held = tuple(FREE if self._lifted[k] else m for k, m in enumerate(self._modes))
+        self._voltage = np.array(result.voltage, dtype=float)
+        self._force = np.array(result.external_force, dtype=float)
+        self._height = np.array(result.displacement, dtype=float)
+        self._velocity = np.array(result.velocity, dtype=float)
+        self._acceleration = np.zeros(self.n_units) if acceleration is None else np.array(acceleration, dtype=float)
+        self._membrane_force = np.array(result.force, dtype=float)
+        self.solver.factorisation = None
+        self._pending = None  # a background tangent under way is of another state
+        self.last = result
+
     def _vector(self, name: str, values: Sequence[float] | float | None, default: np.ndarray) -> np.ndarray:
         if values is None:
             return default.copy()

@@ -11,7 +11,9 @@ difference above the ROM's tolerance hands the FE result to ``resync`` (the redu
 twin restarts from the FE state projected on its basis at its next update, see
 :meth:`~dea_array_twin.model.reduced_twin.ReducedTwin.request_resync`); the node
 publishes the numbers in ``/diagnostics``.  Results the FE itself answered (a
-fallback) are not checked.  No rclpy here.
+fallback) are not checked, nor states in motion (a time step with a velocity: not a
+quasi-static equilibrium the FE could re-solve).  Biased units are re-solved with the
+result's external forces.  No rclpy here.
 """
 
 from __future__ import annotations
@@ -105,8 +107,8 @@ class FeCheck:
         Wakes the check thread only when it waits for a result: one that waits for the
         time of its next check takes the newest result then (at 1 kHz, a wake-up per post
         cost the solver thread a thread switch and a GIL hand-over per update)."""
-        if getattr(result, "fallback", ""):
-            return  # the FE answered it already
+        if getattr(result, "fallback", "") or np.any(result.velocity):
+            return  # the FE answered it already, or it is a state in motion
         with self._cond:
             self._latest = result
             if self._idle:
@@ -135,7 +137,7 @@ class FeCheck:
     def _check(self, result: TwinResult) -> None:
         tic = time.perf_counter()
         try:
-            fe = self.fe.solve(result.displacement, result.voltage, result.modes)
+            fe = self.fe.solve(result.displacement, result.voltage, result.modes, force=result.external_force)
         except (ConvergenceError, ValueError) as exc:
             with self._cond:
                 self._stats = replace(self._stats, failures=self._stats.failures + 1, last_error=str(exc))

@@ -32,12 +32,13 @@ trained for another config stops the start, naming the fields that differ), and
 :class:`~.fe_check.FeCheck` re-solves the latest command with the FE in a background
 thread ``fe_check_rate`` times a second: the ROM-vs-FE difference goes to
 ``/diagnostics``, and a difference above the ROM's tolerance restarts the reduced
-state from the FE state.
+state from the FE state.  Biased units are answered by the ROM when it was trained with
+them driven (their heights solved on it), in quasi-static solves and in time steps.
 
 With biased units that have a moving mass (config ``mass`` > 0) and ``update_rate`` > 0
 the node advances their dynamics: every tick of its update timer, on the node's clock
 (``use_sim_time`` honoured), is one time step of ``dt = 1 / update_rate``
-(:meth:`~dea_array_twin.model.twin.ArrayTwin.step`); otherwise every update is a
+(:meth:`~dea_array_twin.model.twin.ArrayTwin.step`, or the reduced twin's); otherwise every update is a
 quasi-static solve.
 """
 
@@ -68,7 +69,7 @@ from visualization_msgs.msg import Marker
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
 from ..model.membrane import BIASED, FREE, MODES, check_modes
-from ..model.reduced_twin import ReducedTwin
+from ..model.reduced_twin import FALLBACKS, ReducedTwin
 from ..model.twin import ArrayTwin, TwinResult, command_error
 from ..romfile import load_rom
 from .fe_check import FeCheck
@@ -158,7 +159,7 @@ class TwinNode(Node):
         self._states_msg.header.frame_id = self.frame_id
         masses = cfg.per_unit("mass")
         #: Time step of the dynamics [s] (biased units with mass, a timer, the FE model), else None: quasi-static.
-        self.dynamics_dt = (1.0 / self.update_rate if self.update_rate > 0 and not isinstance(twin, ReducedTwin)
+        self.dynamics_dt = (1.0 / self.update_rate if self.update_rate > 0
                             and any(m > 0 for m, mode in zip(masses, cfg.modes) if mode == BIASED) else None)
         self.updater = TwinUpdater(twin, {kind: np.zeros(n) for kind in COMMAND_KINDS}, self.modes,
                                    self._publish_outputs, self._warn, self.solve_budget, stability_period,
@@ -247,10 +248,10 @@ class TwinNode(Node):
         if not rom_file:
             raise ConfigError("rom_file: model 'rom' needs a ROM file (train one with dea-twin rom train)")
         twin = ReducedTwin(cfg, load_rom(rom_file, cfg))
-        if cfg.modes != twin.modes:
+        if not twin.answers(cfg.modes):
             self.get_logger().warning(
-                f"unit_modes {list(cfg.modes)} differ from the modes the ROM was trained for ({list(twin.modes)}): "
-                "the FE answers every update until they match")
+                f"unit_modes {list(cfg.modes)} differ from the modes the ROM was trained for ({list(twin.modes)}; "
+                "a unit trained as driven may be biased): the FE answers every update until they match")
         return twin
 
     def _check_modes(self, modes: object, n_units: int | None = None) -> tuple[str, ...]:
@@ -477,7 +478,7 @@ class TwinNode(Node):
         values.update(model="rom", rom_file=twin.rom.config_hash, rom_tolerance=twin.tolerance,
                       rom_updates=twin.updates, rom_refreshes=twin.refreshes, rom_resyncs=twin.resyncs,
                       **{f"rom_fallbacks_{kind}": fallbacks.get(kind, 0)
-                         for kind in ("envelope", "indicator", "newton")})
+                         for kind in FALLBACKS})
         if res is not None:
             values.update(rom_error_indicator=getattr(res, "error_indicator", math.nan),
                           rom_fallback=getattr(res, "fallback", "") or "none")

@@ -66,3 +66,42 @@ def test_an_in_process_rom_node_lowers_the_switch_interval_only_while_it_lives(c
     with TwinHarness(parameters=params):
         assert sys.getswitchinterval() == pytest.approx(0.1 / 200.0)
     assert sys.getswitchinterval() == before
+
+
+def test_a_rom_node_answers_biased_units_from_the_rom_quasi_statically_and_in_time_steps(coarse_rom, tmp_path):
+    """unit_modes [driven, biased, driven] on a ROM trained all driven: the node's updates are the ROM's (no
+    fallback), the biased height equals the FE twin's within the force tolerance over the bias stiffness, and
+    the FE check (re-solving with the force command) agrees; with a moving mass the node steps the ROM."""
+    import yaml
+
+    from dea_array_twin.configfile import load_config
+
+    cfg, rom, path, yaml_path = coarse_rom
+    lbs = {"type": "linear", "stiffness": 40.0, "free_position": 0.010}
+    quasi = tmp_path / "biased.yaml"
+    modes = ["driven", "biased", "driven"]
+    quasi.write_text(yaml.safe_dump({**yaml.safe_load(yaml_path.read_text()), "unit_modes": modes, "bias": [lbs]}))
+    params = {"config_file": str(quasi), "model": "rom", "rom_file": str(path), "update_rate": 50.0,
+              "fe_check_rate": 5.0, "marker_rate": 0.0}
+    d, v, f = [0.002, 0.0, 0.003], [0.0, 1200.0, 600.0], [0.0, 0.02, 0.0]
+    with TwinHarness(parameters=params) as h:
+        h.send_voltage(v)
+        h.send_force(f)
+        h.send_displacement(d)
+        h.wait_for("unit_states", lambda m: m.position[0] == pytest.approx(0.002)
+                   and list(h.twin_node.result.external_force) == f, timeout=60)
+        status, values = _diag(h, lambda kv: int(kv.get("fe_checks", 0)) >= 1)
+        res = h.twin_node.result
+    ref = ArrayTwin(load_config(quasi)).solve(d, v, force=f)
+    assert res.fallback == "" and values["rom_fallbacks_envelope"] == "0" and int(values["rom_updates"]) >= 1
+    assert abs(res.position[1] - ref.position[1]) <= rom.tolerance * rom.force_reference[1] / 40.0
+    assert float(values["rom_fe_force_difference"]) <= rom.tolerance and status.level in (0, b"\x00")
+    dynamic = tmp_path / "dynamic.yaml"
+    dynamic.write_text(yaml.safe_dump({**yaml.safe_load(quasi.read_text()), "mass": [0.005]}))
+    params.update(config_file=str(dynamic), update_rate=100.0)
+    with TwinHarness(parameters=params) as h:
+        assert h.twin_node.dynamics_dt == pytest.approx(0.01)
+        h.send_force(f)
+        h.wait_for("unit_states", lambda m: abs(m.velocity[1]) > 1e-6, timeout=60)
+        res = h.twin_node.result
+        assert res.fallback == "" and h.twin_node.rom_twin.updates >= 2
