@@ -13,6 +13,11 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
     errors against FE warm solves (and the FE's time per warm update), then the time per
     update of the library's ``ReducedTwin.solve`` running alone on the same paths
     (median, mean, p99, max; refreshes in the calling thread, then ``background_refresh``);
+  - the same for actuator units (``--kinds``): ``biased``, the middle unit biased on an
+    LBS of 40 N/m (free position 10.75 mm) with a force command of 20 mN sin(2 pi i / 200)
+    at update i, the other units on the paths (quasi-static solves); ``dynamic``, the same
+    with a moving mass of 5 g, one ``ReducedTwin.step`` of 1 ms per update; errors (also of
+    the biased height) against the FE twin's solves / steps on the same commands;
 ``--node SECONDS``: instead, the twin node (its own process) with ``model: rom`` and the
 ROM of ``--rom`` at ``update_rate: 1000``, commands at 1 kHz (unit k at 7.5 + 5 sin(2 pi t
 + 2 pi k / n) mm, 1000 V on every unit), the FE check at ``--fe-check-rate``; reports
@@ -80,37 +85,73 @@ def trajectory(envelope: Envelope, steps: int, step: float, seed: int) -> tuple[
     return d, out[:, k.size:]
 
 
-def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Reduced and FE twins along one path: force and capacitance errors of the ROM, FE times [ms]."""
+#: The actuator kinds' bias (an LBS holding the middle unit mid-envelope at mid-voltage), force amplitude [N],
+#: moving mass [kg] and time step [s].
+LBS = {"type": "linear", "stiffness": 40.0, "free_position": 0.01075}
+FORCE, MASS, DT = 0.02, 0.005, 1e-3
+
+
+def kind_setup(cfg: ArrayConfig, kind: str) -> tuple[ArrayConfig, tuple[str, ...] | None, float | None]:
+    """Config, unit modes (None: the trained ones) and time step (None: quasi-static) of a timing kind."""
+    if kind == "driven":
+        return cfg, None, None
+    modes = ["driven"] * cfg.n_units
+    modes[cfg.n_units // 2] = "biased"
+    mass = MASS if kind == "dynamic" else 0.0
+    return cfg.replace(bias=(LBS,), mass=(mass,)), tuple(modes), DT if kind == "dynamic" else None
+
+
+def updater(twin, modes: tuple[str, ...] | None, dt: float | None, d: np.ndarray, v: np.ndarray):
+    """``run(i)``: the twin's update to command i of a path (a solve, or a step of ``dt``), with the force command
+    of the actuator kinds on the biased unit."""
+    if modes is None:
+        return lambda i: twin.solve(d[i], v[i])
+    f = np.zeros(d.shape)
+    f[:, np.array(modes) == "biased"] = FORCE * np.sin(2 * np.pi * np.arange(len(d)) / 200.0)[:, None]
+    if dt is None:
+        return lambda i: twin.solve(d[i], v[i], modes, force=f[i])
+    return lambda i: twin.step(dt, d[i], v[i], f[i], modes) if i else twin.solve(d[i], v[i], modes, force=f[i])
+
+
+def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray,
+            kind: str = "driven") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Reduced and FE twins along one path: force and capacitance errors of the ROM, its position errors [m],
+    FE times [ms]."""
+    cfg, modes, dt = kind_setup(cfg, kind)
     twin = ReducedTwin(cfg, rom, tolerance=np.inf)
     fe = ArrayTwin(cfg, NewtonSettings(check_stability=False))
-    force, cap, fe_ms = [], [], []
+    run, run_fe = updater(twin, modes, dt, d, v), updater(fe, modes, dt, d, v)
+    force, cap, position, fe_ms = [], [], [], []
     for i in range(len(d)):
-        res = twin.solve(d[i], v[i])
+        res = run(i)
         tic = time.perf_counter()
-        ref = fe.solve(d[i], v[i])
+        ref = run_fe(i)
         fe_ms.append(1e3 * (time.perf_counter() - tic))
         force.append(np.abs(res.force - ref.force) / rom.force_reference)
         cap.append(np.abs(res.capacitance - ref.capacitance) / ref.capacitance)
-    return np.array(force[1:]), np.array(cap[1:]), np.array(fe_ms[1:])
+        position.append(np.abs(res.position - ref.position))
+    return np.array(force[1:]), np.array(cap[1:]), np.array(position[1:]), np.array(fe_ms[1:])
 
 
-def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray,
-                 background: bool) -> tuple[np.ndarray, np.ndarray, dict]:
+def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background: bool,
+                 kind: str = "driven") -> tuple[np.ndarray, np.ndarray, dict]:
     """The ROM alone along one path (as a control loop runs it): wall and process CPU ms per update after the
     first (the CPU time leaves out the time other processes held the core, and counts the refresh worker)."""
+    cfg, modes, dt = kind_setup(cfg, kind)
     twin = ReducedTwin(cfg, rom, tolerance=np.inf, background_refresh=background)
-    twin.solve(d[0], v[0])
+    run = updater(twin, modes, dt, d, v)
+    run(0)
     start = (twin.evaluations, twin.refreshes)
     ms, cpu = [], []
     for i in range(1, len(d)):
         tic, tic_cpu = time.perf_counter(), time.process_time()
-        twin.solve(d[i], v[i])
+        run(i)
         ms.append(1e3 * (time.perf_counter() - tic))
         cpu.append(1e3 * (time.process_time() - tic_cpu))
     twin.close()
     return np.array(ms), np.array(cpu), {"evaluations": twin.evaluations - start[0],
-                                         "refreshes": twin.refreshes - start[1]}
+                                         "refreshes": twin.refreshes - start[1],
+                                         "fallbacks": sum(twin.fallbacks.values())}
 
 
 def main_node(rom_file: str, seconds: float, check_rate: float) -> None:
@@ -166,6 +207,8 @@ def main() -> None:
     parser.add_argument("--step", type=float, default=1e-4, help="indenter step per update on the paths [m]")
     parser.add_argument("--paths", type=int, default=3, help="warm trajectories (default 3)")
     parser.add_argument("--length", type=int, default=400, help="updates per trajectory (default 400)")
+    parser.add_argument("--kinds", default="driven,biased,dynamic",
+                        help="update kinds on the paths: driven, biased, dynamic (default all three)")
     parser.add_argument("--rom", help="use this trained ROM file instead of training")
     parser.add_argument("--save", help="write the trained ROM here")
     parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
@@ -198,21 +241,25 @@ def main() -> None:
     print(f"\nwarm trajectories: {args.paths} x {args.length} updates, {args.step * 1e3:g} mm per update per "
           f"indenter; {load()}")
     paths = [trajectory(rom.envelope, args.length, args.step, seed) for seed in range(args.paths)]
-    errors = [compare(cfg, rom, d, v) for d, v in paths]
-    force = np.concatenate([e[0] for e in errors])
-    cap = np.concatenate([e[1] for e in errors])
-    fe_ms = np.concatenate([e[2] for e in errors])
-    print(f"  errors against FE warm solves: force max {force.max():.4%} mean {force.mean():.5%}; capacitance max "
-          f"{cap.max():.4%} mean {cap.mean():.5%}; FE warm update median {np.median(fe_ms):.2f} ms")
-    for background in (False, True):
-        runs = [time_updates(cfg, rom, d, v, background) for d, v in paths]
-        ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
-        n = ms.size
-        print(f"  ROM update, refresh {'in a worker thread' if background else 'in the calling thread'}: "
-              f"median {np.median(ms):.3f} ms, mean {ms.mean():.3f}, p99 {np.percentile(ms, 99):.3f}, max "
-              f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "
-              f"{sum(r[2]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
-              f"{sum(r[2]['refreshes'] for r in runs)} refreshes in {n} updates; {load()}")
+    for kind in args.kinds.split(","):
+        print(f" {kind}" + ("" if kind == "driven" else f" (unit {cfg.n_units // 2 + 1}: LBS {LBS}, force "
+                                                        f"{FORCE:g} N sin, mass {MASS if kind == 'dynamic' else 0:g} kg"
+                                                        + (f", dt {DT:g} s)" if kind == "dynamic" else ")")))
+        errors = [compare(cfg, rom, d, v, kind) for d, v in paths]
+        force, cap, position, fe_ms = (np.concatenate([e[i] for e in errors]) for i in range(4))
+        print(f"  errors against the FE's warm updates: force max {force.max():.4%} mean {force.mean():.5%}; "
+              f"capacitance max {cap.max():.4%} mean {cap.mean():.5%}; position max {position.max() * 1e6:.3g} um; "
+              f"FE warm update median {np.median(fe_ms):.2f} ms")
+        for background in (False, True):
+            runs = [time_updates(cfg, rom, d, v, background, kind) for d, v in paths]
+            ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
+            n = ms.size
+            print(f"  ROM update, refresh {'in a worker thread' if background else 'in the calling thread'}: "
+                  f"median {np.median(ms):.3f} ms, mean {ms.mean():.3f}, p99 {np.percentile(ms, 99):.3f}, max "
+                  f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "
+                  f"{sum(r[2]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
+                  f"{sum(r[2]['refreshes'] for r in runs)} refreshes, {sum(r[2]['fallbacks'] for r in runs)} "
+                  f"fallbacks in {n} updates; {load()}")
 
 if __name__ == "__main__":
     main()

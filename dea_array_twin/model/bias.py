@@ -48,6 +48,9 @@ class BiasRangeError(ValueError):
 class _Law:
     """What every law answers besides force, slope and work."""
 
+    #: ``B`` is affine in ``w`` (its slope is constant): one evaluation gives it everywhere.
+    affine = True
+
     def contains(self, w: float) -> bool:
         """Whether the law is defined at ``w`` (only a table has a range)."""
         return True
@@ -136,6 +139,7 @@ class TableBias(_Law):
     position: tuple[float, ...]
     force_N: tuple[float, ...]
     kind = "table"
+    affine = False
 
     @functools.cached_property
     def _curve(self) -> PchipInterpolator:
@@ -185,6 +189,10 @@ class SumBias(_Law):
 
     terms: tuple["BiasLaw", ...]
     kind = "sum"
+
+    @property
+    def affine(self) -> bool:  # noqa: D102 (documented in _Law)
+        return all(t.affine for t in self.terms)
 
     def force(self, w: float) -> float:
         """``sum B_i(w)`` [N]."""

@@ -68,10 +68,9 @@ from .actuator import UnitLoad
 from .bias import BiasRangeError
 from .config import BIASED, DRIVEN, ArrayConfig
 from .dynamics import NewmarkStep
-from .kernels import solve_small
 from .reduced import ReducedModel, RomMismatchError, check_config
 from .rom_build import held_elements
-from .rom_kernels import classify, evaluate, hessian, point_maps, reduced_tangent, update
+from .rom_kernels import classify, evaluate, heights, hessian, point_maps, reduced_tangent, update
 from .solver import ConvergenceError, NewtonSettings, SolveCancelled
 from .twin import ArrayTwin, TwinResult
 
@@ -250,8 +249,7 @@ class ReducedTwin:
         self._layout = (self._driven, np.ascontiguousarray(self._centre), self._maxwell_factor, cfg.thickness,
                         self._output_scale)
         self._bounds = (self._lo, self._hi, env.voltage_min, env.voltage_max, self._driven, self._maxwell_factor)
-        self._limit = cfg.scaled("max_displacement")
-        self._breakdown = cfg.breakdown_field
+        self._take(cfg)
         self._flat_capacitance = model.flat_capacitance
         self._reference = rom.reference
         self._zeros = np.zeros(self.n_units)  # velocity, bias and external force without biased units
@@ -281,8 +279,14 @@ class ReducedTwin:
             return
         check_config(self.rom, cfg)
         self._config = self.fe.config = cfg
+        self._take(cfg)
+
+    def _take(self, cfg: ArrayConfig) -> None:
+        """Read what an update uses of the config: command limits and the units' bias, mass, damping, contact."""
         self._limit = cfg.scaled("max_displacement")
         self._breakdown = cfg.breakdown_field
+        self._laws, self._mass, self._damping = cfg.per_unit("bias"), cfg.per_unit("mass"), cfg.per_unit("damping")
+        self._contact = [k for k, on in enumerate(cfg.per_unit("contact")) if on]
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the reduced and the FE kernels now, not in the first update.
@@ -295,6 +299,13 @@ class ReducedTwin:
         env = self.rom.envelope
         centre = np.where(np.isnan(env.displacement_min), 0.0, 0.5 * (env.displacement_min + env.displacement_max))
         self.solve(centre, 0.5 * (env.voltage_min + env.voltage_max), check_stability=True)
+        if self._nd:  # the biased heights' kernel: one height update on copies of the state, thrown away
+            n, t, units = self.n_units, self._tangent, self._driven[:1]
+            heights(self._points, self._z.copy(), self._maxwell, self._displacement.copy(), self._voltage,
+                    self._layout, t.arrays, (t.outputs, t.centre), self._cap_factor, self.second_step, self._buffers,
+                    np.empty(n), np.empty((5, n)), np.empty(7),
+                    (self._forces, units, self._slot[units], self._forces[units].copy(), np.zeros(1)), True, True, 1,
+                    np.empty(4))
         self.reset()
         self.fallbacks.clear()
         self.updates = self.evaluations = self.refreshes = self.resyncs = 0
@@ -491,12 +502,15 @@ class ReducedTwin:
         f1 = self._command("force", force, self._force)
         modes = self._modes if modes is None else tuple(modes)
         biased = self._biased_units(modes)
-        outside = False
-        if biased is not None and biased.size:  # the heights start where they are (a guess: kept in the envelope)
-            d1[biased] = np.clip(self._displacement[biased], self._lo[biased], self._hi[biased])
-            outside = bool(np.any(d1[biased] != self._displacement[biased]))
+        outside = infinite = False
+        if biased is not None:  # the heights start where they are (a guess: kept in the envelope)
+            for k in biased.tolist():
+                w = self._displacement[k]
+                d1[k] = min(max(w, self._lo[k]), self._hi[k])
+                outside = outside or d1[k] != w
+                infinite = infinite or not math.isfinite(f1[k])
         code, far = classify(d1, v1, self._limit, self._bounds, self._tangent_at, self._refresh_step)
-        if code == 1 or not np.isfinite(f1).all():
+        if code == 1 or infinite:
             raise ValueError(f"displacement, voltage and force must be finite, got {d1.tolist()} m, "
                              f"{v1.tolist()} V, {f1.tolist()} N")
         if code == 2:
@@ -543,8 +557,7 @@ class ReducedTwin:
     def _loads(self, units: np.ndarray, f1: np.ndarray, dt: float | None) -> list[UnitLoad]:
         """What pushes each biased indenter of ``units`` (:class:`.UnitLoad`): its bias law and external force,
         and in a time step of ``dt`` [s] the inertia and damping of a unit with mass (:class:`.NewmarkStep`)."""
-        cfg = self._config
-        laws, mass, damping = cfg.per_unit("bias"), cfg.per_unit("mass"), cfg.per_unit("damping")
+        laws, mass, damping = self._laws, self._mass, self._damping
         return [UnitLoad(laws[k], f1[k], f1[k], newmark=None if dt is None or mass[k] <= 0 else NewmarkStep(
             mass[k], damping[k], dt, self._displacement[k], self._velocity[k], self._acceleration[k]))
             for k in units]
@@ -577,76 +590,62 @@ class ReducedTwin:
             evals += more + int(info[4])
         return evals, refreshes
 
-    def _balance(self, z: np.ndarray, m1: np.ndarray, d1: np.ndarray, v1: np.ndarray, result: np.ndarray,
-                 info: np.ndarray, units: np.ndarray, loads: list[UnitLoad],
-                 cancel: Callable[[], bool] | None) -> tuple[int, int]:
-        """Solve for the heights ``w = d1[units]`` of the biased units: ``F_k(q(d), d) = G_k(w_k)``; returns
-        (evaluations, refreshes).
+    def _balance(self, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.ndarray, m1: np.ndarray,
+                 result: np.ndarray, info: np.ndarray, units: np.ndarray, loads: list[UnitLoad], predict: bool,
+                 cancel: Callable[[], bool] | None) -> tuple[int, int, np.ndarray | None]:
+        """Update to ``(d1, v1)`` with the heights ``w = d1[units]`` of the biased units solved for,
+        ``F_k(q(d), d) = G_k(w_k)``; returns (evaluations, refreshes, the heights' linear prediction or None).
 
-        Newton on the heights with the reduced equilibrium in ``q`` at each iterate (one
-        :meth:`_update`, usually one evaluation) and the condensed stiffness of the last
-        refreshed Hessian, ``K = H_dd - H_dq H_qq^-1 H_qd`` (:class:`_Tangent`):
-
-            dw = (K - dG/dw)^-1 (G(w) - F(w)).
-
-        When the residual is within ``second_step`` of each unit's force scale the last
-        step is applied to the state and the outputs to first order (``z``, ``q`` by
-        ``dq/dd``, outputs by ``dO/dd``), without another evaluation.  ``K - dG/dw`` not
-        positive definite at an iterate (a limit point: snap-through or an unstable
-        equilibrium), no convergence in :data:`MAX_HEIGHT_ITERATIONS` or heights
-        outside the envelope: :class:`_Refused`, and the FE answers.
+        Newton on the heights in one compiled call (:func:`.rom_kernels.heights`: the
+        condensed stiffness ``K = H_dd - H_dq H_qq^-1 H_qd`` of the refreshed Hessian,
+        ``dw = (K - dG/dw)^-1 (G - F)``, each iterate one reduced update, the last step
+        applied to first order) with ``G`` linearised at the start heights; the bias
+        laws are then evaluated at the result, and a law that is not affine there (a
+        table) is linearised again.  A jump in ``q`` converges with refreshed Hessians
+        between calls.  ``K - dG/dw`` not positive definite at an iterate (a limit point:
+        snap-through or instability) is :class:`_Refused`; no convergence within
+        :data:`MAX_HEIGHT_ITERATIONS` updates a :class:`ConvergenceError`.
         """
+        tangent = self._tangent
         slots = self._slot[units]
-        scale = self._output_scale[slots]
-        evals = refreshes = 0
-        for _ in range(MAX_HEIGHT_ITERATIONS):
-            tangent = self._tangent
-            w = d1[units]
-            g, dg = self._push(loads, w)
-            residual = g - result[0, units]
-            stiffness = tangent.outputs[np.ix_(slots, slots)] - np.diag(dg)
-            if not _positive_definite(stiffness):
-                raise _Refused("snap", f"units {(units + 1).tolist()} at heights {w.tolist()} m: K - dG/dw is "
-                                       "not positive definite (a limit point: snap-through or instability)")
-            dw = solve_small(stiffness, residual)
-            if not np.isfinite(dw).all():
-                break
-            if np.all(np.abs(residual) <= self.second_step * scale):
-                self._shift(tangent, z, d1, result, info, units, slots, dw)
-                return evals, refreshes
-            d1[units] = w + dw
-            more, refreshed = self._update(z, m1.copy(), d1, v1, m1, result, info, cancel)
-            evals, refreshes = evals + more, refreshes + refreshed
-        raise ConvergenceError(f"the heights of biased units {(units + 1).tolist()} did not converge in "
-                               f"{MAX_HEIGHT_ITERATIONS} reduced updates")
-
-    def _shift(self, tangent: _Tangent, z: np.ndarray, d1: np.ndarray, result: np.ndarray, info: np.ndarray,
-               units: np.ndarray, slots: np.ndarray, dw: np.ndarray) -> None:
-        """Move the biased heights by ``dw`` with ``q`` and the outputs to first order (in place)."""
-        nd = self._nd
-        info[0] += result[0, units] @ dw  # dE = F dw at the reduced equilibrium
-        d1[units] += dw
-        z[1 + slots] += dw
-        z[1 + nd:] += tangent.arrays[0][:, slots] @ dw
-        result[0, self._driven] += tangent.outputs[:nd, slots] @ dw
-        result[1] += tangent.outputs[nd:, slots] @ dw
-        result[2] += tangent.centre[:, slots] @ dw
-        result[3] = result[2]
-        result[3, self._driven] = d1[self._driven]
-
-    def _predict(self, z: np.ndarray, m0: np.ndarray, v1: np.ndarray, d1: np.ndarray, units: np.ndarray,
-                 loads: list[UnitLoad]) -> None:
-        """Move the biased heights ``d1[units]`` to where the last tangent puts the equilibrium at the new command:
-        ``(K - dG/dw) dw = G(w0) - F(w0) - dF/dp dp``, ``dp`` the change of the other inputs (in place)."""
-        tangent, nd = self._tangent, self._nd
-        slots = self._slot[units]
-        dp = np.concatenate([d1[self._driven] - z[1:1 + nd], self._maxwell_factor * v1 * v1 - m0])
         w = d1[units]
         g, dg = self._push(loads, w)
-        stiffness = tangent.outputs[np.ix_(slots, slots)] - np.diag(dg)
-        dw = solve_small(stiffness, g - self._forces[units] - tangent.outputs[slots] @ dp)
-        if np.isfinite(dw).all():
-            d1[units] = w + dw
+        status = np.empty(3 + units.size)
+        scale = self._output_scale[slots]
+        biased = (self._forces, units, slots, g - dg * w, dg)
+        evals = refreshes = 0
+        budget, first, predicted = MAX_HEIGHT_ITERATIONS, True, None
+        per_call = budget if all(load.law.affine for load in loads) else 1  # else G linearised at every iterate
+        while True:
+            tangent = self._tangent
+            heights(self._points, z, m0, d1, v1, self._layout, tangent.arrays, (tangent.outputs, tangent.centre),
+                    self._cap_factor, self.second_step, self._buffers, m1, result, info, biased, predict, first,
+                    min(per_call, budget), status)
+            self.evaluations += int(status[0])
+            evals, budget, code = evals + int(status[0]), budget - int(status[1]), status[2]
+            self._refresh_next = self._refresh_next or info[5] > 0.0
+            m0 = m1.copy()
+            if predict:
+                predicted, predict = status[3:].copy(), False
+            if code == 1.0:
+                raise _Refused("snap", f"units {(units + 1).tolist()} at heights {d1[units].tolist()} m: K - dG/dw "
+                                       "is not positive definite (a limit point: snap-through or instability)")
+            if budget <= 0 and code != 0.0:
+                raise ConvergenceError(f"the heights of biased units {(units + 1).tolist()} did not converge in "
+                                       f"{MAX_HEIGHT_ITERATIONS} reduced updates")
+            first = code == 3.0  # moved by a step not yet evaluated
+            if code == 2.0:  # a jump in q: converge it, then update again there
+                more, refreshed = self._settle(z, m1, True, cancel)
+                more_too, refreshed_too = self._update(z, m0, d1, v1, m1, result, info, cancel)
+                evals, refreshes, budget = evals + more + more_too, refreshes + refreshed + refreshed_too, budget - 1
+                continue
+            if code == 0.0 and per_call > 1:  # affine laws: G was exact
+                return evals, refreshes, predicted
+            w = d1[units]
+            g, dg = self._push(loads, w)
+            if code == 0.0 and np.all(np.abs(g - biased[3] - biased[4] * w) <= self.second_step * scale):
+                return evals, refreshes, predicted
+            biased = (self._forces, units, slots, g - dg * w, dg)  # G linearised at the new heights
 
     def _reduced(self, d1: np.ndarray, v1: np.ndarray, far: bool, check: bool, cancel: Callable[[], bool] | None,
                  tic: float, modes: tuple, units: np.ndarray, f1: np.ndarray, dt: float | None) -> ReducedResult:
@@ -657,7 +656,8 @@ class ReducedTwin:
         z = self._z.copy()
         m0 = self._maxwell
         evals = refreshes = 0
-        if self._cold:
+        cold = self._cold
+        if cold:
             m0 = self._maxwell_factor * v1 * v1
             z[1:1 + self._nd] = d1[self._driven]
             evals, refreshes = self._settle(z, m0, self._projected, cancel)
@@ -666,18 +666,17 @@ class ReducedTwin:
             refreshes = self._collect_refresh()
             if far or self._refresh_next:
                 refreshes += self._request_refresh(z, m0)
-            if units.size:
-                self._predict(z, m0, v1, d1, units, loads)
         m1, result, info = np.empty(self.n_units), np.empty((5, self.n_units)), np.empty(7)
-        more, refreshed = self._update(z, m0, d1, v1, m1, result, info, cancel)
-        evals, refreshes = evals + more, refreshes + refreshed
         bias_force = self._zeros
         if units.size:
-            more, refreshed = self._balance(z, m1, d1, v1, result, info, units, loads, cancel)
+            more, refreshed, predicted = self._balance(z, m0, d1, v1, m1, result, info, units, loads, not cold, cancel)
             evals, refreshes = evals + more, refreshes + refreshed
-            self._check_heights(d1, units)
+            self._check_heights(d1, units, predicted)
             bias_force = np.zeros(self.n_units)
             bias_force[units] = [load.law.force(w) for load, w in zip(loads, d1[units])]
+        else:
+            more, refreshed = self._update(z, m0, d1, v1, m1, result, info, cancel)
+            evals, refreshes = evals + more, refreshes + refreshed
         self._check_contact(result[0])
         stable = None
         if check:
@@ -709,24 +708,27 @@ class ReducedTwin:
             velocity=velocity, bias_force=bias_force, external_force=external, lifted_off=self._none, snaps=(),
             error_indicator=float(info[2]), recover=functools.partial(_recover, self._reference, self._vectors, z[1:]))
 
-    def _check_heights(self, d1: np.ndarray, units: np.ndarray) -> None:
-        """Refuse biased heights outside the trained displacement range."""
-        w, lo, hi = d1[units], self._lo[units], self._hi[units]
-        slack = 1e-9 * (hi - lo)
-        out = np.flatnonzero((w < lo - slack) | (w > hi + slack))
-        if out.size:
-            k = units[out[0]]
-            raise _Refused("envelope", f"height {d1[k]:.6g} m of biased unit {k + 1} outside the trained "
-                                       f"[{self._lo[k]:.6g}, {self._hi[k]:.6g}] m")
+    def _check_heights(self, d1: np.ndarray, units: np.ndarray, predicted: np.ndarray | None) -> None:
+        """Refuse biased heights outside the trained range, or converged more than the FE's ``jump_tol`` (a
+        fraction of D) from their linear prediction (a jump to another branch, as :mod:`.snap` takes it)."""
+        jump = self.fe.solver.settings.jump_tol * self.model.length_scale
+        for i, k in enumerate(units.tolist()):  # a few units: plain Python is faster than numpy here
+            w, lo, hi = float(d1[k]), float(self._lo[k]), float(self._hi[k])
+            if not lo - 1e-9 * (hi - lo) <= w <= hi + 1e-9 * (hi - lo):
+                raise _Refused("envelope", f"height {w:.6g} m of biased unit {k + 1} outside the trained "
+                                           f"[{lo:.6g}, {hi:.6g}] m")
+            if predicted is not None and abs(w - predicted[i]) > jump:
+                raise _Refused("snap", f"biased heights {d1[units].tolist()} m of units {(units + 1).tolist()} "
+                                       f"converged more than {jump:.3g} m from their linear prediction "
+                                       f"{predicted.tolist()} m (a jump: a limit point crossed?)")
 
     def _check_contact(self, force: np.ndarray) -> None:
         """Refuse a state where an indenter with unilateral ``contact`` would pull the membrane: it lifts off
         (:class:`.ArrayTwin` releases it; the reduced model has its disk held)."""
-        contact = self._config.per_unit("contact")
-        if not any(contact):
+        if not self._contact:
             return
         tolerance = self.fe.solver.settings.residual_tol * self.model.force_scale
-        pulling = [k for k in range(self.n_units) if contact[k] and force[k] < -tolerance]
+        pulling = [k for k in self._contact if force[k] < -tolerance]
         if pulling:
             raise _Refused("contact", f"the indenters of units {[k + 1 for k in pulling]} would pull the "
                                       f"membrane ({force[pulling].tolist()} N): lift-off")

@@ -606,6 +606,163 @@ def reduced_tangent(hz: np.ndarray, hm: np.ndarray, nd: int, n_modes: int, cap_f
     return bool(stable), arrays
 
 
+@numba.njit(**_JIT)
+def _cholesky_solve(lower, b, out):
+    """``out = (L L^T)^-1 b`` from the lower factor ``L`` of :func:`_cholesky`."""
+    n = b.size
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= lower[i, k] * out[k]
+        out[i] = s / lower[i, i]
+    for i in range(n - 1, -1, -1):
+        s = out[i]
+        for k in range(i + 1, n):
+            s -= lower[k, i] * out[k]
+        out[i] = s / lower[i, i]
+
+
+@numba.njit(**_JIT)
+def _heights(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
+             output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m, grad_w,
+             det_max, m1, result, info, outputs, centre_d, forces, units, slots, g0, g1, predict, first, max_updates,
+             status):
+    nd = driven.size
+    nu = v1.size
+    nb = units.size
+    nc = z.size
+    r = nc - 1 - nd
+    k = np.empty((nb, nb))
+    rhs = np.empty(nb)
+    dw = np.empty(nb)
+    status[0] = 0.0  # evaluations
+    status[1] = 0.0  # updates
+    if predict:  # (K - dG/dw) dw = G(w0) - F0 - dF/dp dp, dp the change of the other inputs
+        dp = np.empty(nd + nu)
+        for i in range(nd):
+            dp[i] = d1[driven[i]] - z[1 + i]
+        for u in range(nu):
+            dp[nd + u] = maxwell_factor * v1[u] * v1[u] - m0[u]
+        for i in range(nb):
+            acc = g0[i] + g1[i] * d1[units[i]] - forces[units[i]]
+            for j in range(nd + nu):
+                acc -= outputs[slots[i], j] * dp[j]
+            rhs[i] = acc
+            for j in range(nb):
+                k[i, j] = outputs[slots[i], slots[j]]
+            k[i, i] -= g1[i]
+        if _cholesky(k):
+            _cholesky_solve(k, rhs, dw)
+            for i in range(nb):
+                if np.isfinite(dw[i]):
+                    d1[units[i]] += dw[i]
+    for i in range(nb):
+        status[3 + i] = d1[units[i]]  # the heights' linear prediction
+    m_prev = m0.copy()
+    for it in range(max_updates + 1):
+        if first or it > 0:
+            if it == max_updates:
+                status[2] = 3.0  # not converged
+                return
+            _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m_prev, d1, v1, driven, centre, maxwell_factor,
+                    thickness, output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step,
+                    grad, grad_m, grad_w, det_max, m1, result, info)
+            status[0] += info[4]
+            status[1] += 1.0
+            for u in range(nu):
+                m_prev[u] = m1[u]
+            if info[6] > second_step:
+                status[2] = 2.0  # a jump: converge in q with refreshed Hessians, then call again
+                return
+        small = True
+        for i in range(nb):
+            rhs[i] = g0[i] + g1[i] * d1[units[i]] - result[0, units[i]]
+            small = small and abs(rhs[i]) <= second_step * output_scale[slots[i]]
+            for j in range(nb):
+                k[i, j] = outputs[slots[i], slots[j]]
+            k[i, i] -= g1[i]
+        if not _cholesky(k):
+            status[2] = 1.0  # K - dG/dw not positive definite: a limit point
+            return
+        _cholesky_solve(k, rhs, dw)
+        for i in range(nb):
+            if not np.isfinite(dw[i]):
+                status[2] = 3.0
+                return
+        if small:  # the last step to first order: heights, q and every output
+            for i in range(nb):
+                info[0] += result[0, units[i]] * dw[i]  # dE = F dw at the reduced equilibrium
+                d1[units[i]] += dw[i]
+                z[1 + slots[i]] += dw[i]
+            for j in range(r):
+                acc = 0.0
+                for i in range(nb):
+                    acc += sensitivity[j, slots[i]] * dw[i]
+                z[1 + nd + j] += acc
+            for o in range(nd + nu):
+                acc = 0.0
+                for i in range(nb):
+                    acc += outputs[o, slots[i]] * dw[i]
+                if o < nd:
+                    result[0, driven[o]] += acc
+                else:
+                    result[1, o - nd] += acc
+            for u in range(nu):
+                acc = 0.0
+                for i in range(nb):
+                    acc += centre_d[u, slots[i]] * dw[i]
+                result[2, u] += acc
+                result[3, u] = result[2, u]
+            for i in range(nd):
+                result[3, driven[i]] = d1[driven[i]]
+            status[2] = 0.0
+            return
+        for i in range(nb):
+            d1[units[i]] += dw[i]
+
+
+def heights(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.ndarray, layout: tuple,
+            tangent: tuple, condensed: tuple, cap_factor: float, second_step: float, buffers: tuple, m1: np.ndarray,
+            result: np.ndarray, info: np.ndarray, biased: tuple, predict: bool, first: bool, max_updates: int,
+            status: np.ndarray) -> None:
+    """Solve for the heights ``w = d1[units]`` of biased units, ``F_k(q(d), d) = G_k(w_k)``, in place.
+
+    ``G_k(w) = g0_k + g1_k w`` (affine: a linear, constant or no bias law and a Newmark
+    step's inertia are; a table's local linearisation), Newton on the heights with the
+    condensed stiffness ``K = dF/dd = H_dd - H_dq H_qq^-1 H_qd`` of the last refresh,
+
+        dw = (K - dG/dw)^-1 (G(w) - F(w)),
+
+    each iterate one :func:`update` (usually one evaluation).  With ``predict`` the first
+    iterate is the linear prediction from the last state, ``(K - dG/dw) dw = G(w0) - F0 -
+    dF/dp dp`` (``dp``: the change of the other inputs); with ``first`` an update runs at
+    the (predicted) heights before the first residual, else ``result`` holds that
+    update.  When the residual is within ``second_step`` of each unit's force scale, the
+    last ``dw`` is applied to the heights, ``z`` (``q`` by ``dq/dd``) and every output to
+    first order, without another evaluation.
+
+    Parameters
+    ----------
+    points, layout, tangent, buffers, m1, result, info
+        As for :func:`update` (``m0``: the Maxwell coefficients of ``z``).
+    condensed : tuple
+        ``(dO/dp, dcentre/dd)`` with ``q`` at equilibrium: outputs (driven forces,
+        capacitances) per input ``p = (d, m)``, centre deflections per driven ``d``.
+    biased : tuple
+        ``(forces, units, slots, g0, g1)``: the indenter forces at ``z`` [N] (the
+        predictor's ``F0``), the biased units, their places among the driven inputs,
+        and ``G``'s coefficients [N, N/m].
+    max_updates : int
+        Updates the solve may spend.
+    status : ndarray, shape (3 + n_biased,)
+        Filled with evaluations, updates, the outcome (0 converged, 1 ``K - dG/dw`` not
+        positive definite: a limit point, 2 a jump in ``q``: converge it and call again
+        without ``first``, 3 not converged) and the predicted heights [m].
+    """
+    _heights(*points, z, m0, d1, v1, *layout, *tangent, cap_factor, second_step, *buffers, m1, result, info,
+             *condensed, *biased, predict, first, max_updates, status)
+
+
 def hessian_reference(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, z: np.ndarray,
                       maxwell: np.ndarray, yeoh: Yeoh, n_units: int) -> tuple[np.ndarray, np.ndarray]:
     """:func:`hessian` in numpy, from :func:`.material.energy_derivatives` (the tests' reference)."""

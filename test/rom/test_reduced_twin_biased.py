@@ -77,6 +77,8 @@ def test_a_biased_height_pushed_outside_the_envelope_is_answered_by_the_fe_and_s
             np.testing.assert_allclose(res.position, ref.position, rtol=1e-6)
             np.testing.assert_allclose(res.force, ref.force, rtol=1e-6)
     assert twin.fallbacks == {"envelope": 1}
+    with pytest.raises(ValueError, match="force must be finite"):
+        twin.solve(force=[0, np.nan, 0])
 
 
 def test_a_limit_point_of_a_negative_rate_bias_is_not_crossed_silently(coarse_rom, rom):
@@ -96,6 +98,27 @@ def test_a_limit_point_of_a_negative_rate_bias_is_not_crossed_silently(coarse_ro
     assert res.fallback.startswith("snap: units [2]") and "not positive definite" in res.fallback
     assert [s.unit for s in res.snaps] == [1] and res.position[1] < 0  # the FE's snap, landed below
     assert res.snaps[0].describe().startswith("unit 2 snapped through from 5.")
+
+
+def test_a_jump_to_the_other_branch_of_a_bistable_dome_is_not_returned_silently(coarse_rom, rom):
+    """A narrow bistable dome (a table: B = 86.8 mN + 8 mN tanh((w - 4 mm) / 0.2 mm)) under unit 2: on its
+    lower branch the ROM answers as the FE; a 10 mN force step beyond its limit point lands Newton on the upper
+    branch, 0.36 mm from the heights' linear prediction: more than jump_tol (0.01 D, the FE's test), so the FE
+    answers ("snap") and lands where the FE twin, which reports a snap-through, lands."""
+    heights = [1e-4 * i for i in range(81)]
+    dome = {"type": "table", "position": heights,
+            "force": [0.0868 + 0.008 * np.tanh((w - 0.004) / 0.0002) for w in heights]}
+    twin, fe = ReducedTwin(coarse_rom[0].replace(bias=(dome,)), rom), ArrayTwin(coarse_rom[0].replace(bias=(dome,)))
+    modes = ("driven", "biased", "driven")
+    for t in (twin, fe):
+        t.solve([0, 0.003, 0], 0.0)  # held at 3 mm, then released onto the dome
+    res, ref = twin.solve(modes=modes), fe.solve(modes=modes)
+    assert res.fallback == "" and res.position[1] < 0.0038  # the lower branch
+    _compare(res, ref, rom, 5.0)  # K - dB/dw is above 5 N/m there (the dome's slope at 3.7 mm: 6 N/m)
+    res, ref = twin.solve(force=[0, 0.01, 0]), fe.solve(modes=modes, force=[0, 0.01, 0])
+    assert res.fallback.startswith("snap: biased heights") and "from their linear prediction" in res.fallback
+    assert [s.unit for s in ref.snaps] == [1] and ref.position[1] > 0.0042  # the FE's snap, to the upper branch
+    np.testing.assert_allclose(res.position, ref.position, rtol=1e-6)
 
 
 def test_an_indenter_in_contact_that_would_pull_the_membrane_is_answered_by_the_fe(coarse_rom, rom):
@@ -163,3 +186,46 @@ def test_a_biased_indenter_with_mass_oscillates_with_the_period_of_its_stiffness
     res, ref = twin.step(dt), fe.step(dt)  # the FE's again, from its own state
     assert twin.fallbacks == {"envelope": 2} and res.position[1] > 0.008
     _compare(res, ref, rom, k_eff)
+
+
+WARM_UP = """
+import json, sys
+import numba
+from dea_array_twin import ArrayConfig
+from dea_array_twin.model import rom_kernels
+from dea_array_twin.model.reduced_twin import ReducedTwin
+from dea_array_twin.romfile import load_rom
+
+def compiled():
+    return {name: len(f.signatures) for name, f in vars(rom_kernels).items()
+            if isinstance(f, numba.core.registry.CPUDispatcher)}
+
+cfg = ArrayConfig(**json.loads(sys.argv[1])).replace(bias=({"type": "linear", "stiffness": 40.0,
+                                                           "free_position": 0.010},), mass=(0.005,))
+twin = ReducedTwin(cfg, load_rom(sys.argv[2], cfg))
+twin.warm_up()
+before = compiled()
+modes = ("driven", "biased", "driven")
+answers = [twin.solve([0.002, 0, 0.003], [0, 1000, 0], modes, force=[0, 0.01, 0]), twin.solve(voltage=[0, 1100, 0]),
+           twin.step(0.001), twin.step(0.001, force=[0, 0.02, 0])]
+assert all(res.fallback == "" for res in answers), [res.fallback for res in answers]
+print(json.dumps({"before": before, "after": compiled()}))
+"""
+
+
+def test_no_biased_update_of_the_reduced_twin_compiles_after_warm_up_in_a_fresh_interpreter(coarse_rom, tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from conftest import COARSE
+
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))  # this checkout's source
+    out = subprocess.run([sys.executable, "-c", WARM_UP, json.dumps(COARSE), str(coarse_rom[2])], capture_output=True,
+                         text=True, timeout=280, cwd=tmp_path, env=env)
+    assert out.returncode == 0, out.stderr
+    counts = json.loads(out.stdout.strip().splitlines()[-1])
+    assert counts["before"]["_heights"] == 1, counts
+    assert counts["after"] == counts["before"], counts
