@@ -51,8 +51,9 @@ lags its commands by up to one tick, which costs a little FIT on fast command ch
 
 With ``--rom ROM.npz`` the replay runs the reduced twin
 (:class:`~dea_array_twin.model.reduced_twin.ReducedTwin`, its FE answering outside
-the envelope; the count of such fallbacks is printed); ``--rom ROM.npz --compare``
-also replays the FE on the same commands and prints the reduced model's largest force
+the envelope; the count of such fallbacks is printed; a dynamic run steps it at the
+recorded ticks as the FE); ``--rom ROM.npz --compare`` also replays the FE on the same
+commands (a dynamic run: the same steps) and prints the reduced model's largest force
 difference (over each unit's largest FE |F|) and capacitance difference (over C) and the
 FIT of its outputs against the FE's (:func:`compare_models`).
 
@@ -525,8 +526,10 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     bad_outputs: Counter = Counter()
     n = cfg.n_units
 
+    streamed = list(commands.values()) + list(outputs.values())  # (outputs gains the positions below)
+
     def command_stream() -> Iterator[tuple[int, str, list[float]]]:
-        for msg in bag.messages(list(commands.values()) + list(outputs.values()), decode=True):
+        for msg in bag.messages(streamed, decode=True):
             if msg.topic in kind_of:
                 yield msg.log_time_ns, kind_of[msg.topic], list(msg.decoded.data)
             else:
@@ -543,14 +546,14 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     rate = _recorded_rate(bag)
     states = _unit_states(bag, commands, n)
     masses = cfg.per_unit("mass")
-    dynamic = (rate > 0 and states is not None and len(states[0]) > 1 and rom_path is None
+    dynamic = (rate > 0 and states is not None and len(states[0]) > 1
                and any(mode == BIASED and mass > 0 for mode, mass in zip(modes, masses)))
     if dynamic:
         _log(f"biased units with mass at {rate:g} Hz: re-simulating the dynamics, one step per recorded tick "
              f"({len(states[0])} unit_states stamps), each command from the first tick after it")
     tic = time.perf_counter()
-    run = replay_commands(twin, modes, command_stream(), total=total, time_origin_ns=origin,
-                          ticks_ns=_ticks(states[0]) if dynamic else None, dt=1.0 / rate if dynamic else 0.0)
+    steps = {"ticks_ns": _ticks(states[0]) if dynamic else None, "dt": 1.0 / rate if dynamic else 0.0}
+    run = replay_commands(twin, modes, command_stream(), total=total, time_origin_ns=origin, **steps)
     elapsed = time.perf_counter() - tic
     if rom_path is not None:
         print(f"reduced model {rom_path}: {twin.updates} update(s) by the ROM, FE fallbacks "
@@ -600,6 +603,6 @@ def replay_offline(bag: Bag, topic_map: dict[str, str], config_path: str | None,
     if compare:
         fe_run = replay_commands(ArrayTwin(cfg), modes, ((t, k, v) for t, k, v in command_stream()
                                                          if k in ("displacement", "voltage", "force")),
-                                 total=total, time_origin_ns=origin)
+                                 total=total, time_origin_ns=origin, **steps)
         print(_comparison_table(compare_models(run, fe_run), min(run.n_solves, fe_run.n_solves)))
     return 1 if run.failures else 0
