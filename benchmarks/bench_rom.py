@@ -17,7 +17,8 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
     LBS of 40 N/m (free position 10.75 mm) with a force command of 20 mN sin(2 pi i / 200)
     at update i, the other units on the paths (quasi-static solves); ``dynamic``, the same
     with a moving mass of 5 g, one ``ReducedTwin.step`` of 1 ms per update; errors (also of
-    the biased height) against the FE twin's solves / steps on the same commands;
+    the biased height) against the FE twin's solves / steps on the same commands, then the
+    kinds' timings interleaved in ``--rounds`` rounds (noise on a shared machine);
 ``--node SECONDS``: instead, the twin node (its own process) with ``model: rom`` and the
 ROM of ``--rom`` at ``update_rate: 1000``, commands at 1 kHz (unit k at 7.5 + 5 sin(2 pi t
 + 2 pi k / n) mm, 1000 V on every unit), the FE check at ``--fe-check-rate``; reports
@@ -209,6 +210,8 @@ def main() -> None:
     parser.add_argument("--length", type=int, default=400, help="updates per trajectory (default 400)")
     parser.add_argument("--kinds", default="driven,biased,dynamic",
                         help="update kinds on the paths: driven, biased, dynamic (default all three)")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="timing rounds, each timing every kind in turn (default 1)")
     parser.add_argument("--rom", help="use this trained ROM file instead of training")
     parser.add_argument("--save", help="write the trained ROM here")
     parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
@@ -241,7 +244,8 @@ def main() -> None:
     print(f"\nwarm trajectories: {args.paths} x {args.length} updates, {args.step * 1e3:g} mm per update per "
           f"indenter; {load()}")
     paths = [trajectory(rom.envelope, args.length, args.step, seed) for seed in range(args.paths)]
-    for kind in args.kinds.split(","):
+    kinds = args.kinds.split(",")
+    for kind in kinds:
         print(f" {kind}" + ("" if kind == "driven" else f" (unit {cfg.n_units // 2 + 1}: LBS {LBS}, force "
                                                         f"{FORCE:g} N sin, mass {MASS if kind == 'dynamic' else 0:g} kg"
                                                         + (f", dt {DT:g} s)" if kind == "dynamic" else ")")))
@@ -250,16 +254,21 @@ def main() -> None:
         print(f"  errors against the FE's warm updates: force max {force.max():.4%} mean {force.mean():.5%}; "
               f"capacitance max {cap.max():.4%} mean {cap.mean():.5%}; position max {position.max() * 1e6:.3g} um; "
               f"FE warm update median {np.median(fe_ms):.2f} ms")
-        for background in (False, True):
-            runs = [time_updates(cfg, rom, d, v, background, kind) for d, v in paths]
-            ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
-            n = ms.size
-            print(f"  ROM update, refresh {'in a worker thread' if background else 'in the calling thread'}: "
-                  f"median {np.median(ms):.3f} ms, mean {ms.mean():.3f}, p99 {np.percentile(ms, 99):.3f}, max "
-                  f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "
-                  f"{sum(r[2]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
-                  f"{sum(r[2]['refreshes'] for r in runs)} refreshes, {sum(r[2]['fallbacks'] for r in runs)} "
-                  f"fallbacks in {n} updates; {load()}")
+    for round_ in range(1, args.rounds + 1):  # the kinds' timings interleaved, round after round
+        print(f" timing, round {round_} of {args.rounds}")
+        for kind in kinds:
+            for background in (False, True):
+                runs = [time_updates(cfg, rom, d, v, background, kind) for d, v in paths]
+                ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
+                n = ms.size
+                where = "in a worker thread" if background else "in the calling thread"
+                print(f"  {kind}: ROM update, refresh {where}: "
+                      f"median {np.median(ms):.3f} ms, mean {ms.mean():.3f}, p99 {np.percentile(ms, 99):.3f}, max "
+                      f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "
+                      f"{sum(r[2]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
+                      f"{sum(r[2]['refreshes'] for r in runs)} refreshes, {sum(r[2]['fallbacks'] for r in runs)} "
+                      f"fallbacks in {n} updates; {load()}")
+
 
 if __name__ == "__main__":
     main()

@@ -606,12 +606,10 @@ class ReducedTwin:
         snap-through or instability) is :class:`_Refused`; no convergence within
         :data:`MAX_HEIGHT_ITERATIONS` updates a :class:`ConvergenceError`.
         """
-        tangent = self._tangent
         slots = self._slot[units]
         w = d1[units]
         g, dg = self._push(loads, w)
         status = np.empty(3 + units.size)
-        scale = self._output_scale[slots]
         biased = (self._forces, units, slots, g - dg * w, dg)
         evals = refreshes = 0
         budget, first, predicted = MAX_HEIGHT_ITERATIONS, True, None
@@ -621,29 +619,30 @@ class ReducedTwin:
             heights(self._points, z, m0, d1, v1, self._layout, tangent.arrays, (tangent.outputs, tangent.centre),
                     self._cap_factor, self.second_step, self._buffers, m1, result, info, biased, predict, first,
                     min(per_call, budget), status)
-            self.evaluations += int(status[0])
-            evals, budget, code = evals + int(status[0]), budget - int(status[1]), status[2]
+            done = int(status[0])
+            self.evaluations += done
+            evals, budget, code = evals + done, budget - int(status[1]), status[2]
             self._refresh_next = self._refresh_next or info[5] > 0.0
-            m0 = m1.copy()
             if predict:
                 predicted, predict = status[3:].copy(), False
+            if code == 0.0 and per_call > 1:  # affine laws: G was exact
+                return evals, refreshes, predicted
             if code == 1.0:
                 raise _Refused("snap", f"units {(units + 1).tolist()} at heights {d1[units].tolist()} m: K - dG/dw "
                                        "is not positive definite (a limit point: snap-through or instability)")
             if budget <= 0 and code != 0.0:
                 raise ConvergenceError(f"the heights of biased units {(units + 1).tolist()} did not converge in "
                                        f"{MAX_HEIGHT_ITERATIONS} reduced updates")
-            first = code == 3.0  # moved by a step not yet evaluated
+            first, m0 = code == 3.0, m1.copy()  # first: moved by a step not yet evaluated
             if code == 2.0:  # a jump in q: converge it, then update again there
                 more, refreshed = self._settle(z, m1, True, cancel)
                 more_too, refreshed_too = self._update(z, m0, d1, v1, m1, result, info, cancel)
                 evals, refreshes, budget = evals + more + more_too, refreshes + refreshed + refreshed_too, budget - 1
                 continue
-            if code == 0.0 and per_call > 1:  # affine laws: G was exact
-                return evals, refreshes, predicted
             w = d1[units]
             g, dg = self._push(loads, w)
-            if code == 0.0 and np.all(np.abs(g - biased[3] - biased[4] * w) <= self.second_step * scale):
+            if code == 0.0 and np.all(np.abs(g - biased[3] - biased[4] * w) <= self.second_step *
+                                      self._output_scale[slots]):
                 return evals, refreshes, predicted
             biased = (self._forces, units, slots, g - dg * w, dg)  # G linearised at the new heights
 
@@ -667,13 +666,14 @@ class ReducedTwin:
             if far or self._refresh_next:
                 refreshes += self._request_refresh(z, m0)
         m1, result, info = np.empty(self.n_units), np.empty((5, self.n_units)), np.empty(7)
-        bias_force = self._zeros
+        bias_force = external = self._zeros
         if units.size:
             more, refreshed, predicted = self._balance(z, m0, d1, v1, m1, result, info, units, loads, not cold, cancel)
             evals, refreshes = evals + more, refreshes + refreshed
             self._check_heights(d1, units, predicted)
-            bias_force = np.zeros(self.n_units)
-            bias_force[units] = [load.law.force(w) for load, w in zip(loads, d1[units])]
+            bias_force, external = np.zeros(self.n_units), np.zeros(self.n_units)
+            for k, load in zip(units.tolist(), loads):  # scalars: a few units, cheaper than numpy's fancy indexing
+                bias_force[k], external[k] = load.law.force(float(d1[k])), f1[k]
         else:
             more, refreshed = self._update(z, m0, d1, v1, m1, result, info, cancel)
             evals, refreshes = evals + more, refreshes + refreshed
@@ -695,10 +695,6 @@ class ReducedTwin:
         self._z, self._maxwell, self._voltage, self._displacement = z, m1, v1, result[3]
         self._modes, self._force, self._forces = modes, f1, result[0]
         peak, sigma_min = result[4], float(info[1])
-        external = self._zeros
-        if units.size:
-            external = np.zeros(self.n_units)
-            external[units] = f1[units]
         return ReducedResult(
             displacement=result[3].copy(), voltage=v1, modes=modes, force=result[0], capacitance=result[1],
             delta_capacitance=result[1] - self._flat_capacitance, centre_deflection=result[2], peak_field=peak,
