@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 from conftest import COARSE, DOME
-from scipy.optimize import brentq
+from scipy.optimize import brentq, minimize_scalar
 
 from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
 from dea_array_twin.model.bias import bias_from_entry
@@ -314,3 +314,38 @@ def test_an_equilibrium_beyond_the_bias_table_is_an_error_not_an_extrapolation()
     with pytest.raises(ConvergenceError, match=r"unit 1: position 0\.004\d* m is outside the bias table \[0, 0\.004\]"):
         twin.solve(voltage=[0.0])
     assert twin.last is None
+
+
+#: A soft dome under unit 2 of the coarse 1-by-3: F - B of the lower branch peaks at a few mN.
+SOFT_DOME_W = [0.00025 * i for i in range(49)]
+SOFT_DOME = {"type": "table", "position": SOFT_DOME_W,
+             "force": [0.0868 + 0.02 * math.tanh((w - 0.004) / 0.0005) for w in SOFT_DOME_W]}
+
+
+def test_a_force_step_whose_prediction_reaches_past_the_limit_point_is_reported_as_a_snap():
+    """Unit 2 of the coarse 1-by-3 on the soft dome, its neighbours held at 0: the lower branch
+    ends where F - B has its local maximum f* (bounded search on driven solves).  A force step
+    from 0 to 5 mN > f* in one solve: near the fold the stiffness is small, the linear
+    prediction reaches the upper branch and Newton converged there without a mismatch, so the
+    snap went unreported (the height moved 1.4 mm in one step).  Now it is reported, starting
+    at f* (its load fraction times 5 mN, within 1 %) near the maximum's height, and the twin
+    lands where Brent's method on driven solves puts the upper equilibrium at 5 mN."""
+    law = bias_from_entry(SOFT_DOME)
+    rig = ArrayTwin(ArrayConfig(**COARSE), TIGHT)
+
+    def gap(w, force=0.0):
+        return rig.solve([0.0, w, 0.0], 0.0, ["driven"] * 3, check_stability=False).force[1] - law.force(w) - force
+
+    peak = minimize_scalar(lambda w: -gap(w), bounds=(0.003, 0.0045), method="bounded", options={"xatol": 1e-6})
+    w_star, f_star = peak.x, -peak.fun
+    assert 0.002 < f_star < 0.005
+    twin = ArrayTwin(ArrayConfig(**COARSE, bias=(SOFT_DOME,)))
+    twin.solve([0.0, 0.003, 0.0], 0.0)
+    start = twin.solve(modes=("driven", "biased", "driven"), force=[0.0, 0.0, 0.0])
+    assert not start.snaps and start.position[1] < w_star
+    res = twin.solve(force=[0.0, 0.005, 0.0])
+    assert len(res.snaps) == 1
+    snap = res.snaps[0]
+    assert 0.005 * snap.load_fraction == pytest.approx(f_star, rel=0.01)
+    assert abs(snap.start - w_star) < 1e-4 and snap.end > 0.0045
+    assert res.position[1] == pytest.approx(brentq(gap, 0.0045, 0.0055, args=(0.005,), xtol=1e-13), rel=1e-6)
