@@ -88,6 +88,8 @@ from .updater import TwinUpdater
 COMMAND_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
 OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 COMMAND_KINDS = ("displacement", "voltage", "force")
+#: Longest wait [s] at start for the recorder to connect to the outputs (:meth:`TwinNode._wait_for_recorder`).
+RECORDER_MATCH_TIMEOUT = 10.0
 #: No QoS event handlers but the ones the node uses.  rclpy's default ones (a warning on an
 #: incompatible QoS or type, which the other side's publisher or subscription also logs)
 #: are two waitables per publisher and subscription that the executor walks through in
@@ -313,6 +315,29 @@ class TwinNode(Node):
             self.get_logger().info(f"recording to {self.recorder.writer.path}")
         except RecordingError as exc:
             self._on_recording_error(f"recording not started: {exc}")
+            return
+        self._wait_for_recorder(RECORDER_MATCH_TIMEOUT)
+
+    def _wait_for_recorder(self, timeout: float) -> None:
+        """Return once the recorder's subscriptions and this node's output publishers have matched.
+
+        Outputs are volatile: a message published before the recorder's subscription is
+        connected to its publisher never reaches the recording, and a dynamic node on a
+        simulated clock publishes its rest state once, before its first tick.  Within one
+        process the match takes milliseconds (seconds on a loaded machine); the solver
+        thread, the only publisher of outputs, starts after this.  After ``timeout`` [s]
+        the node goes on with a warning that the first outputs may be missing.
+        """
+        outputs = {"force": self.pub_force, "capacitance": self.pub_cap, "unit_states": self.pub_states,
+                   "/diagnostics": self.pub_diag}
+        deadline = time.monotonic() + timeout
+        while not all(self.recorder.publisher_count(topic) >= 1 and publisher.get_subscription_count() >= 1
+                      for topic, publisher in outputs.items()):
+            if time.monotonic() > deadline:
+                self.get_logger().warning(f"the recorder's subscriptions did not connect to the outputs within "
+                                          f"{timeout:g} s: the first outputs may be missing from the recording")
+                return
+            time.sleep(0.002)
 
     def _on_recording_error(self, text: str) -> None:
         self.recording_error = text

@@ -3,6 +3,7 @@ is finalised on SIGINT, SIGTERM and SIGHUP, never stops the twin."""
 
 import os
 import signal
+import threading
 import time
 from collections import Counter
 from pathlib import Path
@@ -274,3 +275,33 @@ def test_replaying_the_twins_own_recording_reproduces_its_outputs(tmp_path, caps
         assert np.abs(replayed - f).max(axis=1).min() < 1e-6 * 0.1
     rows = list(csv.DictReader(open(tmp_path / "re.csv")))
     assert float(rows[-1]["V2_V"]) == 1500.0 and float(rows[-1]["F2_N"]) > 0
+
+
+def test_the_solver_thread_starts_only_once_the_recorder_is_connected_to_the_outputs(tmp_path, monkeypatch):
+    """Outputs are volatile: one published before the recorder's subscription has matched is lost
+    to the recording (a dynamic node on a simulated clock publishes its rest state once, before
+    any tick).  With the recorder held unconnected for 0.5 s, the node's solver thread (the only
+    publisher of outputs) starts after it connects, and the rest state is in the recording."""
+    from dea_array_twin.ros import recorder, updater
+
+    released = threading.Event()
+    connected = recorder.TopicRecorder.publisher_count
+    monkeypatch.setattr(recorder.TopicRecorder, "publisher_count",
+                        lambda self, topic: connected(self, topic) if released.is_set() else 0)
+    made = recorder.TopicRecorder.__init__
+
+    def make(self, *args, **kwargs):  # the recorder connects 0.5 s after it is made
+        made(self, *args, **kwargs)
+        threading.Timer(0.5, released.set).start()
+
+    monkeypatch.setattr(recorder.TopicRecorder, "__init__", make)
+    started = []
+    start = updater.TwinUpdater.start
+    monkeypatch.setattr(updater.TwinUpdater, "start", lambda self: (started.append(released.is_set()), start(self)))
+    params = {"update_rate": 20.0, "record": True, "record_dir": str(tmp_path), "unit_modes": FREE_CENTRE}
+    with TwinHarness(parameters=params) as h:
+        assert started == [True]
+        h.wait_for("/diagnostics", lambda m: any(kv.key == "recorder_written" and int(kv.value) >= 3
+                                                 for kv in m.status[0].values), timeout=20)
+    topics = Counter(channel.topic for _, channel, _ in make_reader(open(_only_file(tmp_path), "rb")).iter_messages())
+    assert topics["/force"] >= 1 and topics["/unit_states"] >= 1
