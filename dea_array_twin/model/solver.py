@@ -712,15 +712,15 @@ class EquilibriumSolver:
         if scale is None or abs(scale) > 2.0:
             return None
         before = last.before
-        ratio = _usable(_along(before.dp, dp)) if before is not None and before.dp.shape == dp.shape else None
-        if ratio is None and before is not None and before.dp.shape == dp.shape:
-            curve = _on_command_curve(dp_new, dp, before.dp, scale)
+        if before is not None and before.dp.shape == dp.shape:
+            ratio = _usable(_along(before.dp, dp))
+            if ratio is not None and _within_reach(scale, ratio):
+                return scale, last.dx_f, dp, _extrapolate(scale, ratio, last.dx_f, before.dx_f), scale * dp
+            curve = _on_command_curve(dp_new, dp, before.dp, scale) if ratio is None else None
             if curve is not None:
                 lam, a, dp_along = curve
                 return scale, last.dx_f, dp, _extrapolate(lam, a, last.dx_f, before.dx_f), dp_along
-        if ratio is None or not _within_reach(scale, ratio):
-            return scale, last.dx_f, dp, scale * last.dx_f, scale * dp
-        return scale, last.dx_f, dp, _extrapolate(scale, ratio, last.dx_f, before.dx_f), scale * dp
+        return scale, last.dx_f, dp, scale * last.dx_f, scale * dp
 
     def _heights_secant(self, load_change: np.ndarray) -> tuple | None:
         """``(dx_f, dw, dw)`` when this solve continues the last one (:meth:`PathRecord.continues`) with
@@ -882,7 +882,7 @@ def _on_command_curve(dp_new: np.ndarray, dp: np.ndarray, dp_before: np.ndarray,
         lam -= along / (aa + 2.0 * c * ad + c * c * dd)
     if not (np.isfinite(lam) and _within_reach(lam, a)):
         return None
-    return lam, a, lam * dp + lam * (lam + 1.0) * curvature
+    return lam, a, _extrapolate(lam, a, dp, dp_before)
 
 
 def _along(v: np.ndarray, u: np.ndarray, exact: bool = True) -> float | None:
@@ -927,11 +927,11 @@ def _balanced(res: np.ndarray, n_free: int, r_tol: float, x_tol: float, fact: Fa
     step that led to ``res``, :attr:`.indenters.IndenterBorder.step_stiffness`) it leaves a
     height error ``R_w / S`` and a membrane force error ``K_m R_w / S``.  The row converges
     when the first is within ``x_tol`` and the second within ``r_tol``, and always within
-    ``r_tol`` itself.  In a quasi-static solve ``S`` is
-    about ``K_m`` and the tolerance about ``r_tol``; in a Newmark step the inertial term
-    (5000 N/m for 5 g at 2 ms, against a membrane's ~60 N/m) makes the force ``R_w`` some 80
-    times more sensitive to the height than the membrane is, and holding it to ``r_tol``
-    cost a heights-only Newton step for a height error of picometres.
+    ``r_tol`` itself.  In a quasi-static solve ``S`` is about ``K_m`` and the tolerance about
+    ``r_tol``; in a Newmark step the inertial term (5000 N/m for 5 g at 2 ms, against a
+    membrane's ~60 N/m) makes the force ``R_w`` some 80 times more sensitive to the height
+    than the membrane is, and holding it to ``r_tol`` cost a heights-only Newton step for a
+    height error of picometres.
     """
     if np.abs(res[:n_free]).max(initial=0.0) > r_tol:
         return False
