@@ -15,16 +15,19 @@ Interface (relative names, so ``-r __ns:=/left_array`` runs several arrays; SI u
   publisher connects or leaves.
 * service ``reset`` (std_srvs/Trigger): all units to 0 m, 0 V, flat membrane.
 
-The executor only moves messages: callbacks check a command
-(:func:`~dea_array_twin.model.twin.command_error`) and hand it to the solver thread
-(:class:`~.updater.TwinUpdater`), which owns the
+A solver thread (:class:`~.updater.TwinUpdater`) owns the
 :class:`~dea_array_twin.model.twin.ArrayTwin`, solves on the latest command, gives
-each solve a time budget (``solve_budget``) and publishes when a solve finishes.  So
-commands, ``reset``, parameters, diagnostics and the recorder never wait for a solve.
-The update clock is the solver thread's own (every ``1/update_rate`` s of the steady
-clock, not a ROS timer), and the FE twin refreshes stale tangents in a worker thread
-(``ArrayTwin(background_tangent=True)``): at 500 Hz neither a timer callback per tick
-in the executor nor a factorisation in an update (5-10 ms) fits the 2 ms period.
+each solve a time budget (``solve_budget``) and publishes when a solve finishes; the
+executor never waits for it.  So commands, ``reset``, parameters, diagnostics and the
+recorder never wait for a solve.  The update clock is the solver thread's own (every
+``1/update_rate`` s of the steady clock, not a ROS timer), and at each tick the thread
+takes the latest command of each kind from its subscription itself (:class:`TakenBySolver`:
+no executor callback per command), checks it
+(:func:`~dea_array_twin.model.twin.command_error`) and solves.  With ``update_rate: 0``
+(an update per command) or dynamics, executor callbacks check each command as it comes
+and hand it to the thread.  The FE twin refreshes stale tangents in a worker thread
+(``ArrayTwin(background_tangent=True)``): at 500 Hz neither a callback per tick or per
+command in the executor nor a factorisation in an update (5-10 ms) fits the 2 ms period.
 
 With ``model: rom`` the solver thread runs a
 :class:`~dea_array_twin.model.reduced_twin.ReducedTwin` from ``rom_file`` (a ROM
@@ -55,10 +58,11 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.subscription import Subscription
 from rclpy.task import Future
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
@@ -96,6 +100,30 @@ RECORDER_MATCH_TIMEOUT = 10.0
 #: Python at every wake-up: with those 14 and a 500 Hz update timer its thread took 0.3-0.4
 #: of a core at 500 commands a second, without them 0.15-0.2 (benchmarks/bench_core.py --node).
 NO_DEFAULT_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
+#: How often [Hz] the executor looks for command publishers that came or left, when the
+#: solver thread takes the commands (no matched-event handler then: see :class:`TakenBySolver`).
+PUBLISHER_WATCH_RATE = 10.0
+
+
+class TakenBySolver(CallbackGroup):
+    """A callback group whose subscriptions no executor runs: the solver thread takes their messages.
+
+    An executor leaves an entity out of its wait set when its group says it cannot
+    execute it (rclpy's ``Executor.can_execute``), so a command arriving costs the
+    executor nothing; :meth:`TwinNode._take_commands` takes the latest one at each tick.
+    Such a subscription must have no QoS event handler: a waitable of a subscription
+    whose message is unread wakes the wait set at once, and the executor spun at a
+    whole core (measured with a matched-event handler).
+    """
+
+    def can_execute(self, entity) -> bool:
+        return not isinstance(entity, Subscription)
+
+    def beginning_execution(self, entity) -> bool:
+        return not isinstance(entity, Subscription)
+
+    def ending_execution(self, entity) -> None:
+        pass
 
 
 def unit_array(values: Sequence[float]) -> Float64MultiArray:
@@ -163,10 +191,14 @@ class TwinNode(Node):
         #: Time step of the dynamics [s] (biased units with mass, a timer, the FE model), else None: quasi-static.
         self.dynamics_dt = (1.0 / self.update_rate if self.update_rate > 0
                             and any(m > 0 for m, mode in zip(masses, cfg.modes) if mode == BIASED) else None)
+        #: Whether the solver thread takes the commands at its ticks (quasi-static updates at a rate), else the
+        #: executor posts each as it comes (an update per command, or dynamics on the node's clock).
+        self.commands_taken_by_solver = self.update_rate > 0 and self.dynamics_dt is None
         self.updater = TwinUpdater(twin, {kind: np.zeros(n) for kind in COMMAND_KINDS}, self.modes,
                                    self._publish_outputs, self._warn, self.solve_budget, stability_period,
                                    period=1.0 / self.update_rate if self.update_rate > 0 else 0.0,
-                                   dynamics_dt=self.dynamics_dt)
+                                   dynamics_dt=self.dynamics_dt,
+                                   take_commands=self._take_commands if self.commands_taken_by_solver else None)
         check_rate = declare_number(self, "fe_check_rate", 1.0,
                                     "model rom: FE re-solves of the latest command per second, in a background "
                                     "thread (difference in /diagnostics, resync above the ROM's tolerance); 0 = off")
@@ -186,11 +218,17 @@ class TwinNode(Node):
             self.fe_check = FeCheck(cfg, twin.rom.force_reference, twin.tolerance, check_rate, twin.request_resync,
                                     self._warn)
             self.fe_check.start()
+        if self.commands_taken_by_solver:
+            group, events = TakenBySolver(), SubscriptionEventCallbacks(use_default_callbacks=False)
+            self._publisher_counts: dict[str, int] = {}
+            self.create_timer(1.0 / PUBLISHER_WATCH_RATE, self._watch_command_publishers)
+        else:
+            group, events = None, SubscriptionEventCallbacks(matched=lambda _: self._publish_diagnostics(),
+                                                             use_default_callbacks=False)
         self._command_subs = {
             kind: self.create_subscription(
                 Float64MultiArray, f"command/{kind}", lambda m, kind=kind: self._on_command(kind, m), COMMAND_QOS,
-                event_callbacks=SubscriptionEventCallbacks(matched=lambda _: self._publish_diagnostics(),
-                                                           use_default_callbacks=False))
+                event_callbacks=events, callback_group=group)
             for kind in COMMAND_KINDS}
         self.create_service(Trigger, "reset", self._on_reset, callback_group=MutuallyExclusiveCallbackGroup())
         if self.dynamics_dt is not None:  # dynamics step on the node's clock (use_sim_time honoured)
@@ -378,6 +416,32 @@ class TwinNode(Node):
                                    f"indenter, a biased one is moved by its bias and force "
                                    f"(unit_modes {list(self.modes)})", period=5.0)
         self.updater.post(kind, msg.data)
+
+    def _take_commands(self) -> None:
+        """Take the latest message of each command subscription and handle it (on the solver thread).
+
+        The subscriptions keep one message (depth 1), so this is the command an executor
+        callback would have seen last.  rclpy has no public ``take``: this is the call its
+        executor makes (``Subscription.handle.take_message``).  A take that fails because
+        the context was shut down (Ctrl-C during it) is the stop, not an error."""
+        for kind, sub in self._command_subs.items():
+            try:
+                with sub.handle:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+            except Exception:
+                if self.context.ok():
+                    raise
+                return
+            if taken is not None:
+                self._on_command(kind, taken[0])
+
+    def _watch_command_publishers(self) -> None:
+        """Publish diagnostics when a command publisher came or left (what a matched-event handler does
+        when the executor takes the commands)."""
+        counts = {kind: sub.get_publisher_count() for kind, sub in self._command_subs.items()}
+        if counts != self._publisher_counts:
+            self._publisher_counts = counts
+            self._publish_diagnostics()
 
     async def _on_reset(self, request, response):
         """Pre-empt the solver thread and answer when the twin is flat again (the executor keeps running)."""

@@ -353,11 +353,53 @@ def test_best_effort_peers_connect_both_ways():
 
 def test_the_executor_waits_only_on_the_event_handlers_the_twin_uses():
     """rclpy's default QoS event handlers (two per publisher and subscription, walked in Python at
-    every wake-up of the executor) are left out: the command subscriptions keep their publisher-matched
-    handler (it publishes diagnostics), the outputs have none."""
-    with TwinHarness(parameters={"update_rate": 20.0, "marker_rate": 0.0, **COARSE}) as h:
+    every wake-up of the executor) are left out: the outputs have none; the command subscriptions
+    keep their publisher-matched handler (it publishes diagnostics) when the executor takes the
+    commands (update_rate 0), and have none when the solver thread does (a handler of an unread
+    subscription would wake the executor's wait at once, again and again)."""
+    handlers = {}
+    for rate in (20.0, 0.0):
+        with TwinHarness(parameters={"update_rate": rate, "marker_rate": 0.0, **COARSE}) as h:
+            node = h.twin_node
+            outputs = {p.topic_name: len(p.event_handlers) for p in node.publishers
+                       if p.topic_name != "/parameter_events"}
+            handlers[rate] = {s.topic_name: len(s.event_handlers) for s in node.subscriptions}
+        assert outputs == {"/force": 0, "/capacitance": 0, "/unit_states": 0, "/membrane": 0, "/diagnostics": 0}
+    assert handlers[20.0] == {"/command/displacement": 0, "/command/voltage": 0, "/command/force": 0}
+    assert handlers[0.0] == {"/command/displacement": 1, "/command/voltage": 1, "/command/force": 1}
+
+
+def test_at_an_update_rate_the_solver_thread_takes_the_commands_and_says_when_a_publisher_comes():
+    """At a quasi-static update rate no executor runs a command callback (500-1000 of them a second
+    cost the solver thread its ticks): the solver thread takes the latest command at each tick and
+    checks it; a command publisher that comes or goes is still reported in /diagnostics at once."""
+    import threading
+
+    from std_msgs.msg import Float64MultiArray
+
+    with TwinHarness(parameters={"update_rate": 50.0, "marker_rate": 0.0, **COARSE}) as h:
         node = h.twin_node
-        outputs = {p.topic_name: len(p.event_handlers) for p in node.publishers if p.topic_name != "/parameter_events"}
-        commands = {s.topic_name: len(s.event_handlers) for s in node.subscriptions}
-    assert outputs == {"/force": 0, "/capacitance": 0, "/unit_states": 0, "/membrane": 0, "/diagnostics": 0}
-    assert commands == {"/command/displacement": 1, "/command/voltage": 1, "/command/force": 1}
+        assert node.commands_taken_by_solver
+        assert not any(h.executor.can_execute(sub) for sub in node.subscriptions if "command" in sub.topic_name)
+        threads = []
+        on_command = node._on_command
+        node._on_command = lambda kind, msg: (threads.append(threading.current_thread().name),
+                                              on_command(kind, msg))
+        h.send_displacement([0.0, 0.003, 0.0])
+        h.wait_for("unit_states", lambda m: m.position[1] == 0.003, timeout=20)
+        h.send_displacement([0.0, 1.0, 0.0])  # beyond the limits: rejected, counted
+        msg = h.wait_for("/diagnostics", lambda m: diagnostic_values(m)["rejected_displacement"] == "1",
+                         timeout=20)
+        assert set(threads) == {"twin-solver"}
+        assert diagnostic_values(msg)["command_publishers_voltage"] == "1"
+
+        reports = []
+        node._publish_diagnostics = lambda: reports.append(node._command_subs["voltage"].get_publisher_count())
+        pub = h.node.create_publisher(Float64MultiArray, h.topic("command/voltage"), 1)
+        deadline = time.monotonic() + 20
+        while 2 not in reports and time.monotonic() < deadline:
+            time.sleep(0.01)
+        h.node.destroy_publisher(pub)
+        while 1 not in reports[reports.index(2) if 2 in reports else 0:] and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert 2 in reports and 1 in reports[reports.index(2):]

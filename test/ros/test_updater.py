@@ -138,3 +138,42 @@ def test_with_a_period_the_thread_updates_once_per_tick_and_counts_the_ticks_a_s
     wait_until(lambda: published[-1] == 1.0)
     assert set(published[during:]) == {1.0}  # nothing published while the solve ran
     assert updater.stats().skipped_ticks in (19, 20)  # 1 s / 0.05 s, less the next update (+1 if late)
+
+
+def test_commands_taken_by_the_thread_itself_are_used_at_the_next_tick_and_end_a_solve_past_its_budget():
+    """With ``take_commands`` (the node at an update rate: the solver thread reads the command
+    subscriptions itself) nothing is posted from outside: the thread takes the latest command at
+    each tick, and a solve past its budget looks for a newer one, finds it and is abandoned for it."""
+    inbox, lock, takers = [], threading.Lock(), set()
+    twin, published = SlowTwin(), []
+
+    def take():  # a subscription of depth 1: the latest command, once
+        takers.add(threading.current_thread().name)
+        with lock:
+            latest = inbox[-1] if inbox else None
+            inbox.clear()
+        if latest is not None:
+            updater.post("displacement", latest)
+
+    with pytest.raises(ValueError, match="period"):
+        TwinUpdater(twin, {"displacement": [0.0] * 3}, ("driven",) * 3, published.append, lambda k, t: None,
+                    0.05, stability_period=1.0, period=0.0, take_commands=take)
+    updater = TwinUpdater(twin, {"displacement": [0.0] * 3, "voltage": [0.0] * 3}, ("driven",) * 3,
+                          published.append, lambda key, text: None, 0.05, stability_period=1.0, period=0.01,
+                          take_commands=take)
+    updater.start()
+    try:
+        wait_until(lambda: published)
+        twin.started.clear()
+        with lock:
+            inbox.append([5.0, 0, 0])  # would take 5 s
+        twin.started.wait(5)
+        tic = time.monotonic()
+        with lock:
+            inbox.append([0.02, 0, 0])
+        wait_until(lambda: published[-1] == 0.02)
+        assert time.monotonic() - tic < 1.0
+        assert ("cancelled", 5.0) in twin.log and updater.stats().budget_overruns == 1
+        assert takers == {"twin-solver"}
+    finally:
+        updater.stop()
