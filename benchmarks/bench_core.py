@@ -28,7 +28,8 @@ warm/checked medians and first solve are printed beside.
 
 ``--node``: the twin node in its own process at ``update_rate: 500`` with a smooth
 command stream (a 1 Hz sine on each unit, sent at 500 Hz), stability checks at the
-default period; the share of ticks it publishes outputs for (goal >= 99 %), the CPU the node
+default period, the node's ``realtime_priority`` at ``--realtime-priority`` (0: normal
+scheduling); the share of ticks it publishes outputs for (goal >= 99 %), the CPU the node
 process used (cores) and its diagnostics; with ``--before DIR`` alternating with the code in
 DIR, a fresh node process per round.
 
@@ -309,7 +310,7 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def measure_node(seconds: float) -> dict:
+def measure_node(seconds: float, priority: int = 0) -> dict:
     """The twin node (its own process) at update_rate 500 on a 1 Hz sine command on each unit, sent from
     this process at 500 Hz: the share of ticks with a force message, the node's CPU and its diagnostics."""
     import math
@@ -317,7 +318,8 @@ def measure_node(seconds: float) -> dict:
     from dea_array_twin.ros.testing import TwinHarness
 
     rate = NODE_RATE
-    with TwinHarness(parameters={"update_rate": rate, "marker_rate": 0.0}, process=True) as h:
+    params = {"update_rate": rate, "marker_rate": 0.0, "realtime_priority": priority}
+    with TwinHarness(parameters=params, process=True) as h:
         start = tick = time.monotonic()
         window = cpu = None
         while time.monotonic() - start < seconds + 2.0:
@@ -345,7 +347,8 @@ def main_node(args) -> None:
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # this checkout, not the install
     versions = [("after", here)] + ([("before", os.path.abspath(args.before))] if args.before else [])
     print(f"node: update_rate {NODE_RATE:g} Hz, commands at {NODE_RATE:g} Hz from another process: unit k at "
-          f"5 + 4 sin(2 pi t + 2 pi k / 3) mm, stability_check_period 1 s (default); {args.node:g} s measured "
+          f"5 + 4 sin(2 pi t + 2 pi k / 3) mm, stability_check_period 1 s (default), "
+          f"realtime_priority {args.realtime_priority}; {args.node:g} s measured "
           f"after 2 s; {args.rounds} round(s) per version; {_load()} at start")
     print(f"{'round':>5s} {'version':>7s} {'ticks held':>10s} {'outputs/s':>9s} {'node CPU':>8s} "
           f"{'solve p50 ms':>12s} {'its':>4s} {'updates':>7s} {'skipped':>7s} {'bg tangents':>11s} {'load':>5s}")
@@ -353,7 +356,8 @@ def main_node(args) -> None:
     for r in range(args.rounds):
         for name, code in (versions if r % 2 == 0 else versions[::-1]):
             env = dict(os.environ, PYTHONPATH=code)  # the node process (python -m) imports from its cwd first
-            done = subprocess.run([sys.executable, os.path.abspath(__file__), "--node-worker", str(args.node)],
+            done = subprocess.run([sys.executable, os.path.abspath(__file__), "--node-worker", str(args.node),
+                                   "--realtime-priority", str(args.realtime_priority)],
                                   cwd=code, env=env, capture_output=True, text=True, check=True)
             m = json.loads(done.stdout.strip().splitlines()[-1])
             held[name].append(m["held"])
@@ -378,6 +382,8 @@ def main() -> None:
                         help="measure the twin node at update_rate 500 on a sine command for SECONDS instead")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--worker-array", help=argparse.SUPPRESS)
+    parser.add_argument("--realtime-priority", type=int, default=0,
+                        help="--node: the node's realtime_priority (SCHED_FIFO; default 0, normal scheduling)")
     parser.add_argument("--node-worker", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -388,7 +394,7 @@ def main() -> None:
         cfg = dict(_array_rows(args.sizes, args.refine))[args.worker_array]
         print(json.dumps(_measure_row_of(args.worker_array, cfg)))
     elif args.node_worker:
-        print(json.dumps(measure_node(args.node_worker)))
+        print(json.dumps(measure_node(args.node_worker, args.realtime_priority)))
     elif args.arrays:
         main_arrays(args)
     elif args.node:

@@ -3,6 +3,7 @@
 Run:  .venv/bin/python benchmarks/bench_rom.py [--size 1x3|4x4] [--snapshots N] [--modes R]
                                                [--validation N] [--workers N] [--rom FILE] [--save FILE]
       .venv/bin/python benchmarks/bench_rom.py --rom FILE --node SECONDS [--fe-check-rate HZ]
+                                               [--realtime-priority P]
 
 Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 voltage]):
   - training cost: FE snapshots (wall and CPU s), basis + hyper-reduction, sizes;
@@ -21,7 +22,8 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
     kinds' timings interleaved in ``--rounds`` rounds (noise on a shared machine);
 ``--node SECONDS``: instead, the twin node (its own process) with ``model: rom`` and the
 ROM of ``--rom`` at ``update_rate: 1000``, commands at 1 kHz (unit k at 7.5 + 5 sin(2 pi t
-+ 2 pi k / n) mm, 1000 V on every unit), the FE check at ``--fe-check-rate``; reports
++ 2 pi k / n) mm, 1000 V on every unit), the FE check at ``--fe-check-rate``, the node's
+``realtime_priority`` at ``--realtime-priority`` (0: normal scheduling); reports
 the force messages per tick (every tick publishes), the node's diagnostics and the CPU the node process
 and this one used.
 Targets (issue 15): 1x3 <= 0.1 % force and capacitance error, <= 0.1 ms per update,
@@ -155,7 +157,7 @@ def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background
                                          "fallbacks": sum(twin.fallbacks.values())}
 
 
-def main_node(rom_file: str, seconds: float, check_rate: float) -> None:
+def main_node(rom_file: str, seconds: float, check_rate: float, priority: int = 0) -> None:
     """The node with the ROM at update_rate 1000 on a 1 Hz sine command: the share of ticks it publishes."""
     import math
 
@@ -165,9 +167,14 @@ def main_node(rom_file: str, seconds: float, check_rate: float) -> None:
 
     rate = 1000.0
     params = {"update_rate": rate, "marker_rate": 0.0, "model": "rom", "rom_file": str(rom_file),
-              "fe_check_rate": check_rate}
-    print(f"node: model rom ({rom_file}), update_rate {rate:g} Hz, fe_check_rate {check_rate:g} Hz, commands at "
+              "fe_check_rate": check_rate, "realtime_priority": priority}
+    print(f"node: model rom ({rom_file}), update_rate {rate:g} Hz, fe_check_rate {check_rate:g} Hz, realtime_priority "
+          f"{priority}, commands at "
           f"{rate:g} Hz; {seconds:g} s measured after 3 s; {load()} at start")
+    if priority > 0:  # the controller's side real-time too, as on a real-time rig
+        from dea_array_twin.ros.realtime import use_fifo
+
+        use_fifo(priority)
     with TwinHarness(parameters=params, process=True) as h:
         h.send_voltage([1000.0] * 3)
         start = time.monotonic()
@@ -187,9 +194,10 @@ def main_node(rom_file: str, seconds: float, check_rate: float) -> None:
         forces = len(h.messages("force"))
         diags = h.messages("/diagnostics")
     values = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
-    keys = ("updates_per_s", "skipped_ticks", "solve_time_p50_ms", "solve_time_p95_ms", "solve_time_max_ms",
-            "rom_updates", "rom_refreshes", "rom_fallbacks_envelope", "rom_fallbacks_indicator", "rom_resyncs",
-            "fe_checks", "fe_check_ms", "rom_fe_force_difference_max", "rom_fe_capacitance_difference_max")
+    keys = ("scheduling", "updates_per_s", "skipped_ticks", "solve_time_p50_ms", "solve_time_p95_ms",
+            "solve_time_max_ms", "rom_updates", "rom_refreshes", "rom_fallbacks_envelope", "rom_fallbacks_indicator",
+            "rom_resyncs", "fe_checks", "fe_check_ms", "rom_fe_force_difference_max",
+            "rom_fe_capacitance_difference_max")
     print(f"  force messages {forces} in {elapsed:.2f} s = {forces / elapsed:.1f} /s: "
           f"{100 * forces / (rate * elapsed):.1f} % of the ticks (goal >= 99 %); {load()} at the end")
     print(f"  CPU: the node process {node_cpu:.2f} of a core, this process (sending the commands, receiving the "
@@ -216,11 +224,13 @@ def main() -> None:
     parser.add_argument("--save", help="write the trained ROM here")
     parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
     parser.add_argument("--fe-check-rate", type=float, default=1.0, help="--node: FE checks per second (default 1)")
+    parser.add_argument("--realtime-priority", type=int, default=0,
+                        help="--node: the node's realtime_priority (SCHED_FIFO; default 0, normal scheduling)")
     args = parser.parse_args()
     if args.node:
         if not args.rom:
             parser.error("--node needs --rom")
-        main_node(args.rom, args.node, args.fe_check_rate)
+        main_node(args.rom, args.node, args.fe_check_rate, args.realtime_priority)
         return
     rows, cols = (int(n) for n in args.size.split("x"))
     cfg = grid(rows, cols)

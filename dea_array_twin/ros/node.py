@@ -57,7 +57,7 @@ from typing import Sequence
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import IntegerRange, ParameterDescriptor, ParameterType, SetParametersResult
 from rclpy.callback_groups import CallbackGroup, MutuallyExclusiveCallbackGroup
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
@@ -86,6 +86,7 @@ from .params import (
     declare_number,
     declare_typed,
 )
+from .realtime import MAX_PRIORITY, use_fifo
 from .spin import spin_node
 from .updater import TwinUpdater
 
@@ -236,6 +237,8 @@ class TwinNode(Node):
         if self.marker_rate > 0:
             self.create_timer(1.0 / self.marker_rate, self._publish_marker)
         self.create_timer(1.0, self._publish_diagnostics)
+        #: What the process runs under (``realtime_priority``), before the recorder's threads start (they inherit it).
+        self.scheduling = self._use_realtime_priority()
         self._start_recording()
         self.updater.start()
         self.get_logger().info(
@@ -287,7 +290,9 @@ class TwinNode(Node):
             raise ConfigError(f"model: must be 'fe' or 'rom', got {model!r}")
         if not rom_file:
             raise ConfigError("rom_file: model 'rom' needs a ROM file (train one with dea-twin rom train)")
-        twin = ReducedTwin(cfg, load_rom(rom_file, cfg))
+        # A refresh of the reduced Hessian (0.5-4 ms, ~10 a second on a smooth stream) would
+        # hold the solver thread for one to four 1 kHz ticks: it runs in a worker thread.
+        twin = ReducedTwin(cfg, load_rom(rom_file, cfg), background_refresh=True)
         if not twin.answers(cfg.modes):
             self.get_logger().warning(
                 f"unit_modes {list(cfg.modes)} differ from the modes the ROM was trained for ({list(twin.modes)}; "
@@ -376,6 +381,26 @@ class TwinNode(Node):
                                           f"{timeout:g} s: the first outputs may be missing from the recording")
                 return
             time.sleep(0.002)
+
+    def _use_realtime_priority(self) -> str:
+        """Apply ``realtime_priority`` (:mod:`.realtime`) before the solver thread starts; what the process runs
+        under, for the diagnostics (a refusal is a warning: the twin runs on under normal scheduling)."""
+        priority = declare_typed(self, "realtime_priority", 0, ParameterDescriptor(
+            description=f"SCHED_FIFO priority (1-{MAX_PRIORITY}) of every thread of the node's process, so that the "
+                        "solver thread's ticks are not delayed by other processes (needs CAP_SYS_NICE or an rtprio "
+                        "limit); 0 = normal scheduling", read_only=True, type=ParameterType.PARAMETER_INTEGER,
+            integer_range=[IntegerRange(from_value=0, to_value=MAX_PRIORITY, step=1)]))
+        if priority == 0:
+            return "normal"
+        try:
+            threads = use_fifo(priority)
+        except OSError as exc:
+            text = (f"realtime_priority {priority}: SCHED_FIFO refused ({exc}); running under normal scheduling "
+                    f"(allow it with CAP_SYS_NICE or an rtprio limit >= {priority} in /etc/security/limits.conf)")
+            self.get_logger().warning(text)
+            return f"normal: {text}"
+        self.get_logger().info(f"SCHED_FIFO priority {priority} for the node's {threads} threads and those it starts")
+        return f"SCHED_FIFO {priority}"
 
     def _on_recording_error(self, text: str) -> None:
         self.recording_error = text
@@ -532,7 +557,7 @@ class TwinNode(Node):
             "solve_time_max_ms": round(1e3 * stats.solve_time_max, 3),
             "solve_budget_s": self.solve_budget, "budget_overruns": stats.budget_overruns,
             "failed_solves": stats.failed_solves, "skipped_ticks": stats.skipped_ticks, "snaps": stats.snaps,
-            "lift_offs": stats.lift_offs, **self.counters,
+            "lift_offs": stats.lift_offs, "scheduling": self.scheduling, **self.counters,
             **{f"command_publishers_{kind}": self.command_publishers(kind) for kind in COMMAND_KINDS},
         }
         if self.recorder is not None:
