@@ -224,25 +224,37 @@ def _extend_add(f, src, base, stride, rows, position):
                     f[ru + a, rv + b] += src[at + a * stride + b]
 
 
+def workspace(n: int, n_super: int, stack_size: int, largest: int) -> tuple:
+    """Scratch arrays of one thread of :func:`factor_range`: ``(stack, offset, waiting, state,
+    position, buffers, wt)`` (``state`` = stack depth and top, zero: an empty stack)."""
+    return (np.empty(max(stack_size, 1)), np.empty(n_super, np.int64), np.empty(n_super, np.int64),
+            np.zeros(2, np.int64), np.empty(n, np.int64), np.empty((2, largest * largest)),
+            np.empty((largest, largest)))
+
+
 @numba.njit(**_JIT)
-def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_size, largest):
-    """Fill ``lx`` (``L`` in the block columns ``lp`` of :func:`row_pattern`) and ``dinv``.
+def factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, s_begin, s_end,
+                 stack, offset, waiting, state, position, buffers, wt):
+    """Fill ``lx`` (``L`` in the block columns ``lp`` of :func:`row_pattern`) and ``dinv`` for the
+    supernodes ``s_begin .. s_end - 1``, on the stack given (``stack``, ``offset``, ``waiting``
+    and ``state`` = its depth and top, updated here); all of them: ``0 .. start.size - 1`` on
+    an empty stack.
 
     ``values`` are the tangent's nonzeros; ``bpos[p, a, b]`` is the position in them of
     entry ``(a, b)`` of block ``(bi[p], j)`` of the lower triangle, ``bp[j] <= p <
-    bp[j + 1]``.  ``largest`` is the largest front's dimension.  Returns the number of
-    negative eigenvalues, or -1 if a zero pivot stopped the factorisation.
+    bp[j + 1]``.  A subtree of the elimination tree is a range of the postorder, so two disjoint ones can
+    be factored at once, each on its own stack (:class:`.linsolve.Factoriser`): the supernodes
+    read only their own columns of ``values`` and the update matrices of their children,
+    and write only their own columns of ``lx`` and ``dinv``.  The last supernode of a range
+    always leaves its update matrix on the stack (never held in its front, as within a
+    range when its parent is the next supernode), for the range that has its parent.
+    ``position``, ``buffers`` and ``wt`` are scratch (:func:`workspace`).  Returns the
+    number of negative eigenvalues of its pivots, or -1 if a zero pivot stopped it.
     """
-    n_super = start.size - 1
-    position = np.empty(start[-1], np.int64)  # a node's block row in the current front
-    buffers = np.empty((2, largest * largest))  # fronts of consecutive supernodes alternate
-    wt = np.empty((largest, largest))  # W^T of the current front's pivot columns
-    stack = np.empty(max(stack_size, 1))
-    offset = np.empty(n_super, np.int64)
-    waiting = np.empty(n_super, np.int64)
     d = np.empty((3, 3))
-    depth, top, negative, held = 0, 0, 0, -1
-    for s in range(n_super):
+    depth, top = state[0], state[1]
+    negative, held = 0, -1
+    for s in range(s_begin, s_end):
         first, m = start[s], fp[s + 1] - fp[s]
         ncol = start[s + 1] - first
         nodes = fn[fp[s]:fp[s + 1]]
@@ -261,7 +273,7 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
                     for b in range(3):
                         f[r + a, c + b] += values[bpos[p, a, b]]
         waiting_children = children[s]
-        if held == s - 1 and s > 0:  # the last child, s - 1, left its update matrix in its front
+        if held == s - 1 and s > s_begin:  # the last child, s - 1, left its update matrix in its front
             child_pivots = 3 * (start[s] - start[s - 1])
             child_size = 3 * (fp[s] - fp[s - 1])
             rows = fn[fp[s - 1] + child_pivots // 3:fp[s]]
@@ -302,7 +314,7 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
                         lx[q, a, b] = f[3 * t + a, 3 * k + b]
                 q += 1
         held = -1
-        if size > pivots and fn[fp[s] + ncol] < start[s + 2]:
+        if size > pivots and s + 1 < s_end and fn[fp[s] + ncol] < start[s + 2]:
             held = s  # the parent is the next supernode (s is its last child): U_s stays in this front
         elif size > pivots:  # push U_s
             dim = size - pivots
@@ -313,4 +325,19 @@ def factor(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, stack_si
             top += dim * dim
             waiting[depth] = s
             depth += 1
+    state[0], state[1] = depth, top
     return negative
+
+
+@numba.njit(**_JIT)
+def move_update(s, src_stack, src_offset, src_waiting, src_state, stack, offset, waiting, state):
+    """Move supernode ``s``'s update matrix, the only one left on the source stack, to the top of
+    the other stack, where the sequential factorisation would have pushed it."""
+    dim2 = src_state[1] - src_offset[s]
+    top, depth = state[1], state[0]
+    stack[top:top + dim2] = src_stack[src_offset[s]:src_offset[s] + dim2]
+    offset[s] = top
+    waiting[depth] = s
+    state[0], state[1] = depth + 1, top + dim2
+    src_state[0], src_state[1] = src_state[0] - 1, src_offset[s]
+

@@ -126,6 +126,10 @@ class NewtonSettings:
         Factorisation of ``K_ff`` (:mod:`.linsolve`): ``"block"`` (compiled multifrontal
         LDL^T on 3x3 node blocks with symbolic reuse, the default), ``"block-uplooking"``
         (the same, one block at a time: the reference) or ``"superlu"`` (scipy).
+    factor_threads : int
+        Threads of a ``"block"`` factorisation: 2 factors two subtrees of the elimination
+        tree at once where that pays (:meth:`.linsolve.Factoriser.factor`; the same factors
+        to the last bit), 1 keeps it on the calling thread.
     snap_step : float
         Load-path fraction below which a step of a path with biased units that fails
         to converge, or that moves a height ``jump_tol`` away from its linear
@@ -156,6 +160,7 @@ class NewtonSettings:
     unstable_step: float = 1.0 / 32.0
     long_jump: float = 0.1
     linear_solver: str = "block"
+    factor_threads: int = 2
     snap_step: float = 1.0 / 256.0
     jump_tol: float = 0.01
     snap_reach: float = 0.025
@@ -164,6 +169,8 @@ class NewtonSettings:
     def __post_init__(self) -> None:
         if self.linear_solver not in BACKENDS:
             raise ValueError(f"linear_solver must be one of {BACKENDS}, got {self.linear_solver!r}")
+        if self.factor_threads not in (1, 2):
+            raise ValueError(f"factor_threads must be 1 or 2, got {self.factor_threads!r}")
 
 
 @dataclass
@@ -381,7 +388,8 @@ class EquilibriumSolver:
 
     def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
         """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``."""
-        factor = factoriser(self.model.pattern, free, self.settings.linear_solver).factor(values)
+        factor = factoriser(self.model.pattern, free, self.settings.linear_solver).factor(
+            values, self.settings.factor_threads)
         return Factorisation(factor, values, self.model, free, prescribed)
 
     def factorise_at(self, x: np.ndarray, maxwell: np.ndarray, free: np.ndarray, prescribed: np.ndarray,

@@ -199,3 +199,46 @@ def test_large_fronts_give_the_reference_factor_and_inertia(below):
     x_ours, x_ref = ours.solve(b), reference.solve(b)
     assert np.abs(x_ours - x_ref).max() <= 1e-12 * np.abs(x_ref).max()
     assert np.abs(k @ x_ours - b).max() <= 1e-9 * np.abs(k).max() * np.abs(x_ours).max()
+
+
+def test_two_subtrees_factored_at_once_give_the_same_factors_to_the_last_bit():
+    """Where a split pays, the factorisation runs the subtree of one supernode (a contiguous
+    range of the postorder, every supernode's parent inside it but its root's) on a worker
+    thread beside the supernodes before it, then the rest: the same arithmetic in the same
+    order, so the solves are equal bit for bit and the inertia too (stable and unstable
+    states; the default 1-by-3 mesh and the 20-by-20 grid are large enough to split)."""
+    from dea_array_twin.model.assembly import SparsePattern
+
+    cases = [(name, model.pattern, free, values) for name, model, free, values in _states()]
+    default = ArrayTwin(ArrayConfig())
+    default.solve([0.0, 0.004, 0.0], [0.0, 1500.0, 0.0])
+    _, free = default.model.prescribed_dofs(["driven"] * 3)
+    cases.append(("1x3 default", default.model.pattern, free,
+                  _tangent(default.model, default._x, np.array([0.0, 1500.0, 0.0]))))
+    side = 20
+    node = np.arange(side * side).reshape(side, side)
+    quads = np.stack([node[:-1, :-1], node[1:, :-1], node[1:, 1:], node[:-1, 1:]], axis=-1).reshape(-1, 4)
+    grid = SparsePattern((3 * quads[:, :, None] + np.arange(3)).reshape(-1, 12), 3 * side * side)
+    rng = np.random.default_rng(21)
+    k = np.diag(np.where(rng.uniform(size=grid.n_dofs) < 0.1, -10.0, 10.0)) + 0.05 * rng.uniform(
+        -1.0, 1.0, (grid.n_dofs, grid.n_dofs))
+    cases.append(("grid", grid, np.arange(grid.n_dofs), (k + k.T)[grid.rows, grid.cols]))
+    split, negative = [], {}
+    for name, pattern, free, values in cases:
+        factoriser = Factoriser(pattern, free, "block")
+        if factoriser._split is not None:
+            lo, r = factoriser._split
+            start, fp, fn = factoriser._frontal[3:6]
+            supernode = np.repeat(np.arange(start.size - 1), np.diff(start))
+            parent = [supernode[fn[fp[s] + start[s + 1] - start[s]]] if fp[s + 1] - fp[s] > start[s + 1] - start[s]
+                      else -1 for s in range(start.size - 1)]
+            assert all(lo <= parent[s] <= r for s in range(lo, r)) and parent[r] > r, name
+            assert not any(lo <= parent[s] <= r for s in range(lo)), name
+            split.append(name)
+        one, two = factoriser.factor(values, threads=1), factoriser.factor(values, threads=2)
+        b = rng.standard_normal(free.size)
+        assert np.array_equal(one.solve(b), two.solve(b)), name
+        assert one.negative_pivots() == two.negative_pivots(), name
+        negative[name] = two.negative_pivots()
+    assert "1x3 default" in split and "grid" in split, split
+    assert negative["1x3 default"] == 0 and negative["grid"] > 0 and negative["saddle"] > 0, negative
