@@ -15,7 +15,9 @@ Back ends:
 * ``"block"`` (the default): :mod:`.multifrontal`, compiled, on the 3x3 node blocks
   of ``K_ff`` in a minimum-degree node ordering (SuperLU's MMD on the node graph, once,
   then an elimination-tree postorder) with relaxed supernodes; dense fronts, the inertia
-  from the 3x3 pivots as it runs.
+  from the 3x3 pivots as it runs.  Where it pays, a subtree of the elimination tree is
+  factored on a second thread beside the supernodes before it (:meth:`Factoriser.factor`,
+  ``NewtonSettings.factor_threads``): the same arithmetic, so the same factors to the bit.
 * ``"block-uplooking"``: the same factorisation one 3x3 block at a time (:mod:`.ldl`,
   the up-looking algorithm of QDLDL): the reference the tests compare ``"block"``
   with.  On the default 1-by-3 mesh it factors in about 0.4x and solves in about 0.4x
