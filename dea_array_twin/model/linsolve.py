@@ -54,6 +54,8 @@ _FACTORISERS_LOCK = threading.Lock()
 PARALLEL_SHARE = 0.85
 #: Supernodes below which a factorisation stays on one thread (a thread hand-over costs ~0.1 ms).
 PARALLEL_MIN_SUPERNODES = 200
+#: Supernodes moved to the top of the tree at most while looking for the best split.
+MAX_TOP_SUPERNODES = 256
 _SUBTREE_POOL: ThreadPoolExecutor | None = None
 _SUBTREE_POOL_LOCK = threading.Lock()
 
@@ -171,14 +173,18 @@ class Factoriser:
         self._split = self._subtrees(start, fp, fn)
 
     @staticmethod
-    def _subtrees(start: np.ndarray, fp: np.ndarray, fn: np.ndarray) -> tuple[int, int] | None:
-        """``(lo, r)``: the subtree of supernode ``r`` (supernodes ``lo .. r`` of the postorder) to factor
-        beside the supernodes ``0 .. lo - 1``, before the rest; None if that gains too little.
+    def _subtrees(start: np.ndarray, fp: np.ndarray, fn: np.ndarray) -> tuple | None:
+        """Ranges of supernodes ``(begins, ends)`` for each of two threads, then those of the top of the
+        tree for one thread after both, and the stack room a thread's subtrees' update matrices
+        need besides the sequential factorisation's (they all wait for the top); None if that
+        gains too little.
 
-        A supernode's work is taken as ``ncol m^2`` (``m`` its front's nodes); of every split,
-        the one with the least ``max(W_before, W_subtree) + W_rest`` is kept if that is at most
-        :data:`PARALLEL_SHARE` of the whole.  The top of the tree (the last separators, with
-        the largest fronts) stays sequential: 40 % of the work on the 1-by-3 and the 8-by-8.
+        Subtrees of the elimination tree are ranges of the postorder.  Starting from the whole
+        tree, the heaviest subtree's root is moved to the top, one at a time (its children's
+        subtrees join the others), and the subtrees are dealt to the two threads heaviest
+        first to the less loaded; a supernode's work is taken as ``ncol m^2`` (``m`` its
+        front's nodes).  Of these partitions, the one with the least ``max(W_1, W_2) +
+        W_top`` is kept if that is at most :data:`PARALLEL_SHARE` of the whole.
         """
         n_super = start.size - 1
         if n_super < PARALLEL_MIN_SUPERNODES:
@@ -190,17 +196,47 @@ class Factoriser:
         parent = np.full(n_super, -1)
         parent[has_parent] = supernode[fn[fp[:-1][has_parent] + ncol[has_parent]]]
         subtree, count = work.copy(), np.ones(n_super, np.int64)
+        kids: list[list[int]] = [[] for _ in range(n_super)]
         for s in range(n_super):  # children come before their parent
             if parent[s] >= 0:
                 subtree[parent[s]] += subtree[s]
                 count[parent[s]] += count[s]
-        before = np.concatenate([[0.0], np.cumsum(work)])[np.arange(n_super) - count + 1]
-        time = np.maximum(before, subtree) + (work.sum() - before - subtree)
-        time[parent < 0] = np.inf  # a root: nothing after it to wait for the two
-        r = int(np.argmin(time))
-        if time[r] > PARALLEL_SHARE * work.sum():
+                kids[parent[s]].append(s)
+        total = work.sum()
+        roots, top_work, best = [int(s) for s in np.flatnonzero(parent < 0)], 0.0, None
+        for _ in range(MAX_TOP_SUPERNODES):
+            roots.sort(key=lambda s: -subtree[s])
+            loads, dealt = [0.0, 0.0], ([], [])
+            for s in roots:  # heaviest first to the less loaded thread
+                k = int(loads[1] < loads[0])
+                loads[k] += subtree[s]
+                dealt[k].append(s)
+            time = max(loads) + top_work
+            if best is None or time < best[0]:
+                best = (time, [sorted(d) for d in dealt])
+            heaviest = roots.pop(0)
+            top_work += work[heaviest]
+            roots.extend(kids[heaviest])
+            if not roots:
+                break
+        time, dealt = best
+        if time > PARALLEL_SHARE * total or not all(dealt):
             return None
-        return r - int(count[r]) + 1, r
+        below = np.zeros(n_super, bool)
+        ranges = []
+        for d in dealt:
+            begins = np.array([s - count[s] + 1 for s in d], np.int64)
+            ends = np.array(d, np.int64) + 1
+            for b, e in zip(begins, ends):
+                below[b:e] = True
+            ranges.append((begins, ends))
+        roots = np.concatenate(dealt)
+        ranges.append(int(((3 * (m[roots] - ncol[roots])) ** 2).sum()))
+        top = np.flatnonzero(~below)  # runs of consecutive supernodes of the top
+        cuts = np.flatnonzero(np.diff(top) > 1) + 1
+        ranges.insert(2, (top[np.concatenate([[0], cuts])].astype(np.int64),
+                          top[np.concatenate([cuts - 1, [top.size - 1]])].astype(np.int64) + 1))
+        return tuple(ranges)
 
     @staticmethod
     def _upper(graph: sp.csc_matrix, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -261,20 +297,22 @@ class Factoriser:
         return LDLFactor(solve, negative)
 
     def _multifrontal(self, values: np.ndarray, lx: np.ndarray, dinv: np.ndarray, threads: int) -> int:
-        """:func:`.multifrontal.factor_range` over all supernodes; with a split and two threads, the
-        subtree ``lo .. r`` on the worker thread beside ``0 .. lo - 1`` here, then the rest here."""
+        """:func:`.multifrontal.factor_ranges` over all supernodes; with a split and two threads, the
+        subtrees of one thread on the worker thread beside those of the other here, then the top of
+        the tree here (:func:`.multifrontal.factor_top`)."""
         start = self._frontal[3]
         n_super = start.size - 1
         args = (values, *self._frontal, lx, dinv)
-        mine = multifrontal.workspace(self._n, n_super, *self._sizes)
         if self._split is None or threads < 2:
-            return multifrontal.factor_range(*args, 0, n_super, *mine)
-        lo, r = self._split
-        other = multifrontal.workspace(self._n, n_super, *self._sizes)
-        subtree = _subtree_pool().submit(multifrontal.factor_range, *args, lo, r + 1, *other)
-        negative = [multifrontal.factor_range(*args, 0, lo, *mine), subtree.result()]
-        multifrontal.move_update(r, *other[:4], *mine[:4])
-        negative.append(multifrontal.factor_range(*args, r + 1, n_super, *mine))
+            whole = np.array([0], np.int64), np.array([n_super], np.int64)
+            return multifrontal.factor_ranges(*args, *whole, *multifrontal.workspace(self._n, n_super, *self._sizes))
+        a, b, top, extra = self._split
+        stack_size, largest = self._sizes
+        mine, other = (multifrontal.workspace(self._n, n_super, stack_size + extra, largest) for _ in range(2))
+        subtrees = _subtree_pool().submit(multifrontal.factor_ranges, *args, *b, *other)
+        negative = [multifrontal.factor_ranges(*args, *a, *mine), subtrees.result()]
+        negative.append(multifrontal.factor_top(*args, *top, *mine[:4], *other[:4],
+                                                *multifrontal.workspace(self._n, n_super, stack_size, largest)))
         return -1 if min(negative) < 0 else sum(negative)
 
     def _superlu(self, values: np.ndarray) -> LDLFactor:

@@ -232,7 +232,7 @@ def workspace(n: int, n_super: int, stack_size: int, largest: int) -> tuple:
             np.empty((largest, largest)))
 
 
-@numba.njit(**_JIT)
+@numba.njit(inline="always", **_JIT)
 def factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, s_begin, s_end,
                  stack, offset, waiting, state, position, buffers, wt):
     """Fill ``lx`` (``L`` in the block columns ``lp`` of :func:`row_pattern`) and ``dinv`` for the
@@ -330,14 +330,58 @@ def factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, s_
 
 
 @numba.njit(**_JIT)
-def move_update(s, src_stack, src_offset, src_waiting, src_state, stack, offset, waiting, state):
-    """Move supernode ``s``'s update matrix, the only one left on the source stack, to the top of
-    the other stack, where the sequential factorisation would have pushed it."""
-    dim2 = src_state[1] - src_offset[s]
-    top, depth = state[1], state[0]
-    stack[top:top + dim2] = src_stack[src_offset[s]:src_offset[s] + dim2]
-    offset[s] = top
-    waiting[depth] = s
-    state[0], state[1] = depth + 1, top + dim2
-    src_state[0], src_state[1] = src_state[0] - 1, src_offset[s]
+def factor_ranges(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begins, ends,
+                  stack, offset, waiting, state, position, buffers, wt):
+    """:func:`factor_range` over the ranges ``begins[i] .. ends[i] - 1`` in turn, on one stack:
+    the negative eigenvalues of all their pivots, or -1 if a zero pivot stopped it."""
+    negative = 0
+    for i in range(begins.size):
+        count = factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begins[i], ends[i],
+                             stack, offset, waiting, state, position, buffers, wt)
+        if count < 0:
+            return -1
+        negative += count
+    return negative
 
+
+@numba.njit(**_JIT)
+def factor_top(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begins, ends,
+               a_stack, a_offset, a_waiting, a_state, b_stack, b_offset, b_waiting, b_state,
+               stack, offset, waiting, state, position, buffers, wt):
+    """:func:`factor_ranges` over the top of the tree (``begins``, ``ends``: runs of its
+    supernodes), after two threads factored the subtrees below it on stacks ``a`` and ``b``.
+
+    Before each run the update matrices of the subtrees' roots that come before it in the
+    postorder are moved from the bottoms of the two stacks to the top of ``stack``, in the
+    order of their supernodes: so ``stack`` holds, supernode by supernode, what the
+    sequential factorisation's stack holds.  Returns the negative eigenvalues of the top's
+    pivots, or -1.
+    """
+    ia, ib, negative = 0, 0, 0
+    for i in range(begins.size):
+        depth, top = state[0], state[1]
+        while True:
+            take_a = ia < a_state[0] and a_waiting[ia] < begins[i]
+            take_b = ib < b_state[0] and b_waiting[ib] < begins[i]
+            if not (take_a or take_b):
+                break
+            if take_a and (not take_b or a_waiting[ia] < b_waiting[ib]):
+                s, src, at = a_waiting[ia], a_stack, a_offset[a_waiting[ia]]
+                end = a_offset[a_waiting[ia + 1]] if ia + 1 < a_state[0] else a_state[1]
+                ia += 1
+            else:
+                s, src, at = b_waiting[ib], b_stack, b_offset[b_waiting[ib]]
+                end = b_offset[b_waiting[ib + 1]] if ib + 1 < b_state[0] else b_state[1]
+                ib += 1
+            stack[top:top + end - at] = src[at:end]
+            offset[s] = top
+            waiting[depth] = s
+            depth += 1
+            top += end - at
+        state[0], state[1] = depth, top
+        count = factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begins[i], ends[i],
+                             stack, offset, waiting, state, position, buffers, wt)
+        if count < 0:
+            return -1
+        negative += count
+    return negative

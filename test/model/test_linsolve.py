@@ -202,11 +202,12 @@ def test_large_fronts_give_the_reference_factor_and_inertia(below):
 
 
 def test_two_subtrees_factored_at_once_give_the_same_factors_to_the_last_bit():
-    """Where a split pays, the factorisation runs the subtree of one supernode (a contiguous
-    range of the postorder, every supernode's parent inside it but its root's) on a worker
-    thread beside the supernodes before it, then the rest: the same arithmetic in the same
-    order, so the solves are equal bit for bit and the inertia too (stable and unstable
-    states; the default 1-by-3 mesh and the 20-by-20 grid are large enough to split)."""
+    """Where a split pays, the factorisation deals subtrees (each a contiguous range of the
+    postorder, every supernode's parent inside it but its root's) to two threads, then
+    factors the top of the tree (closed upwards) on their update matrices: the same
+    arithmetic in the same order, so the solves are equal bit for bit and the inertia too
+    (stable and unstable states; the default 1-by-3 mesh and the 20-by-20 grid are large
+    enough to split)."""
     from dea_array_twin.model.assembly import SparsePattern
 
     cases = [(name, model.pattern, free, values) for name, model, free, values in _states()]
@@ -227,13 +228,21 @@ def test_two_subtrees_factored_at_once_give_the_same_factors_to_the_last_bit():
     for name, pattern, free, values in cases:
         factoriser = Factoriser(pattern, free, "block")
         if factoriser._split is not None:
-            lo, r = factoriser._split
+            (a, b, top, _), n_super = factoriser._split, factoriser._frontal[3].size - 1
             start, fp, fn = factoriser._frontal[3:6]
-            supernode = np.repeat(np.arange(start.size - 1), np.diff(start))
+            supernode = np.repeat(np.arange(n_super), np.diff(start))
             parent = [supernode[fn[fp[s] + start[s + 1] - start[s]]] if fp[s + 1] - fp[s] > start[s + 1] - start[s]
-                      else -1 for s in range(start.size - 1)]
-            assert all(lo <= parent[s] <= r for s in range(lo, r)) and parent[r] > r, name
-            assert not any(lo <= parent[s] <= r for s in range(lo)), name
+                      else -1 for s in range(n_super)]
+            owner = np.full(n_super, -1)
+            for k, (begins, ends) in enumerate((a, b, top)):
+                for lo, hi in zip(begins, ends):
+                    assert (owner[lo:hi] == -1).all(), name  # the ranges do not overlap
+                    owner[lo:hi] = k
+                    if k < 2:  # a whole subtree: parents inside, but its root's, which is in the top
+                        assert all(lo <= parent[s] < hi for s in range(lo, hi - 1)), name
+                        assert parent[hi - 1] == -1 or parent[hi - 1] >= hi, name
+            assert (owner >= 0).all(), name  # they cover every supernode
+            assert all(parent[s] == -1 or owner[parent[s]] == 2 for s in np.flatnonzero(owner == 2)), name
             split.append(name)
         one, two = factoriser.factor(values, threads=1), factoriser.factor(values, threads=2)
         b = rng.standard_normal(free.size)
