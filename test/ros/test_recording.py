@@ -301,7 +301,9 @@ def test_the_solver_thread_starts_only_once_the_recorder_is_connected_to_the_out
     params = {"update_rate": 20.0, "record": True, "record_dir": str(tmp_path), "unit_modes": FREE_CENTRE}
     with TwinHarness(parameters=params) as h:
         assert started == [True]
+        h.wait_for("force", timeout=30)  # the first update (its free set's symbolic analysis) has published
+        seen = len(h.messages("/diagnostics"))  # and a 1 Hz diagnostics later the recorder has written it
         h.wait_for("/diagnostics", lambda m: any(kv.key == "recorder_written" and int(kv.value) >= 3
-                                                 for kv in m.status[0].values), timeout=20)
+                                                 for kv in m.status[0].values), after=seen + 1, timeout=20)
     topics = Counter(channel.topic for _, channel, _ in make_reader(open(_only_file(tmp_path), "rb")).iter_messages())
     assert topics["/force"] >= 1 and topics["/unit_states"] >= 1
