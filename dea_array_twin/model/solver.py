@@ -386,16 +386,19 @@ class EquilibriumSolver:
         m = self.model
         return tangent_values(m.disc, m.pattern, x, m.yeoh, maxwell, m.thickness)[1]
 
-    def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray) -> Factorisation:
-        """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``."""
+    def _factorise(self, values: np.ndarray, free: np.ndarray, prescribed: np.ndarray,
+                   threads: int | None = None) -> Factorisation:
+        """Factor ``K_ff`` of the tangent nonzeros ``values``, reusing the symbolic analysis of ``free``
+        (on ``threads``, default ``settings.factor_threads``)."""
         factor = factoriser(self.model.pattern, free, self.settings.linear_solver).factor(
-            values, self.settings.factor_threads)
+            values, self.settings.factor_threads if threads is None else threads)
         return Factorisation(factor, values, self.model, free, prescribed)
 
     def factorise_at(self, x: np.ndarray, maxwell: np.ndarray, free: np.ndarray, prescribed: np.ndarray,
-                     stats: SolveStats) -> Factorisation:
-        """The factorised tangent at the converged ``x`` (counted in ``stats``)."""
-        fact = self._factorise(self._tangent(x, maxwell), free, prescribed)
+                     stats: SolveStats, threads: int | None = None) -> Factorisation:
+        """The factorised tangent at the converged ``x`` (counted in ``stats``; on ``threads``, default
+        ``settings.factor_threads``)."""
+        fact = self._factorise(self._tangent(x, maxwell), free, prescribed, threads)
         fact.state = x
         stats.factorisations += 1
         return fact

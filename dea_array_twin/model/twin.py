@@ -64,6 +64,10 @@ MAX_SUBSTEP_LEVELS = 6
 #: 3 -> 2.16 iterations and 47 a second; 4 -> 2.53 iterations (refactoring in the solver's
 #: own thread again, 0.018 per update); no background tangents: 2.58 and 0.036.
 BACKGROUND_ITERATIONS = 3
+#: Threads of a background tangent's factorisation: one.  It runs beside the updates, and a
+#: second thread for it took the core the updates need (the node at 500 Hz, benchmarks/bench_core.py
+#: --node with realtime_priority 10: 69.1 / 52.8 % of the ticks held with one, 35.2 / 47.4 % with two).
+BACKGROUND_FACTOR_THREADS = 1
 
 
 @dataclass(frozen=True)
@@ -451,7 +455,7 @@ class ArrayTwin:
                 and result.factorisations == 0 and BIASED not in self._held):
             free_prescribed = self.model.prescribed_dofs(self._held)[::-1]
             self._pending = self._pool.submit(self.solver.factorise_at, self._x, self.model.maxwell(v1),
-                                              *free_prescribed, SolveStats())
+                                              *free_prescribed, SolveStats(), BACKGROUND_FACTOR_THREADS)
             self._pending_over = self.solver.factorisation
         return result
 

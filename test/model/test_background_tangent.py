@@ -6,6 +6,7 @@ under way (as a spare core would have finished it), so the counts are exact.
 """
 
 import math
+import threading
 
 import numpy as np
 from conftest import COARSE
@@ -27,6 +28,15 @@ def test_background_tangents_keep_the_equilibria_and_take_factorisations_off_the
     iterations and fewer factorisations in the updates than the plain twin."""
     cfg = ArrayConfig(**COARSE)
     plain, background = ArrayTwin(cfg), ArrayTwin(cfg, background_tangent=True)
+    threads = []  # of the background factorisations: one (they run beside the updates)
+    factorise = background.solver.factorise_at
+
+    def recorded(*args):
+        if threading.current_thread().name.startswith("fe-tangent"):
+            threads.append(args[5] if len(args) > 5 else None)
+        return factorise(*args)
+
+    background.solver.factorise_at = recorded
     tight = ArrayTwin(cfg, NewtonSettings(residual_tol=1e-11, increment_tol=1e-10))
     counts = {"plain": [0, 0], "background": [0, 0]}  # iterations, factorisations
     try:
@@ -44,6 +54,7 @@ def test_background_tangents_keep_the_equilibria_and_take_factorisations_off_the
     finally:
         background.close()
     assert background.tangents["installed"] > 0 and background.tangents["failed"] == 0
+    assert len(threads) >= background.tangents["installed"] and set(threads) == {1}
     assert counts["background"][0] < counts["plain"][0]
     assert counts["background"][1] < counts["plain"][1] / 2
 
