@@ -262,8 +262,8 @@ def test_a_step_that_lands_on_a_saddle_is_retried_in_halves(make_twin, monkeypat
 
     factorise, negative = EquilibriumSolver._factorise, []
 
-    def recording(self, values, free, prescribed):
-        out = factorise(self, values, free, prescribed)
+    def recording(self, values, free, prescribed, threads=None):
+        out = factorise(self, values, free, prescribed, threads)
         negative.append(out.negative_pivots)
         return out
 
