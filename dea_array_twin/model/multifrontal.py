@@ -379,8 +379,8 @@ def factor_top(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begi
             depth += 1
             top += end - at
         state[0], state[1] = depth, top
-        count = factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begins[i], ends[i],
-                             stack, offset, waiting, state, position, buffers, wt)
+        count = factor_ranges(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begins[i:i + 1],
+                              ends[i:i + 1], stack, offset, waiting, state, position, buffers, wt)
         if count < 0:
             return -1
         negative += count
