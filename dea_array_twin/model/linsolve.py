@@ -15,9 +15,10 @@ Back ends:
 * ``"block"`` (the default): :mod:`.multifrontal`, compiled, on the 3x3 node blocks
   of ``K_ff`` in a minimum-degree node ordering (SuperLU's MMD on the node graph, once,
   then an elimination-tree postorder) with relaxed supernodes; dense fronts, the inertia
-  from the 3x3 pivots as it runs.  Where it pays, a subtree of the elimination tree is
-  factored on a second thread beside the supernodes before it (:meth:`Factoriser.factor`,
-  ``NewtonSettings.factor_threads``): the same arithmetic, so the same factors to the bit.
+  from the 3x3 pivots as it runs.  Where it pays, the subtrees below the top of the
+  elimination tree are dealt to two threads, then the top is factored on their update
+  matrices (:meth:`Factoriser.factor`, ``NewtonSettings.factor_threads``): the same
+  arithmetic in the same order, so the same factors to the bit.
 * ``"block-uplooking"``: the same factorisation one 3x3 block at a time (:mod:`.ldl`,
   the up-looking algorithm of QDLDL): the reference the tests compare ``"block"``
   with.  On the default 1-by-3 mesh it factors in about 0.4x and solves in about 0.4x
@@ -49,8 +50,8 @@ BACKENDS = ("block", "block-uplooking", "superlu")
 #: ``membrane._PATTERNS``) and set of free dofs: the symbolic analysis is pure data.
 _FACTORISERS: "weakref.WeakKeyDictionary[SparsePattern, dict]" = weakref.WeakKeyDictionary()
 _FACTORISERS_LOCK = threading.Lock()
-#: A factorisation runs two subtrees at once when that is predicted to take at most this share
-#: of the time of one after the other (:meth:`Factoriser._split`).
+#: A factorisation runs on two threads when that is predicted to take at most this share of the
+#: time on one (:meth:`Factoriser._subtrees`).
 PARALLEL_SHARE = 0.85
 #: Supernodes below which a factorisation stays on one thread (a thread hand-over costs ~0.1 ms).
 PARALLEL_MIN_SUPERNODES = 200
@@ -62,7 +63,8 @@ _SUBTREE_POOL_LOCK = threading.Lock()
 
 
 def _subtree_pool() -> ThreadPoolExecutor:
-    """The worker thread that factors the second subtree (made on first use, shared by all factorisers)."""
+    """The worker thread that factors the second thread's subtrees (made on first use, shared by all
+    factorisers)."""
     global _SUBTREE_POOL
     with _SUBTREE_POOL_LOCK:
         if _SUBTREE_POOL is None:
@@ -224,20 +226,19 @@ class Factoriser:
         if time > PARALLEL_SHARE * total or not all(dealt):
             return None
         below = np.zeros(n_super, bool)
-        ranges = []
+        threads = []
         for d in dealt:
             begins = np.array([s - count[s] + 1 for s in d], np.int64)
             ends = np.array(d, np.int64) + 1
             for b, e in zip(begins, ends):
                 below[b:e] = True
-            ranges.append((begins, ends))
-        roots = np.concatenate(dealt)
-        ranges.append(int(((3 * (m[roots] - ncol[roots])) ** 2).sum()))
+            threads.append((begins, ends))
         top = np.flatnonzero(~below)  # runs of consecutive supernodes of the top
         cuts = np.flatnonzero(np.diff(top) > 1) + 1
-        ranges.insert(2, (top[np.concatenate([[0], cuts])].astype(np.int64),
-                          top[np.concatenate([cuts - 1, [top.size - 1]])].astype(np.int64) + 1))
-        return tuple(ranges)
+        runs = (top[np.concatenate([[0], cuts])].astype(np.int64),
+                top[np.concatenate([cuts - 1, [top.size - 1]])].astype(np.int64) + 1)
+        roots = np.concatenate(dealt)
+        return threads[0], threads[1], runs, int(((3 * (m[roots] - ncol[roots])) ** 2).sum())
 
     @staticmethod
     def _upper(graph: sp.csc_matrix, order: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
