@@ -242,10 +242,11 @@ def factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, s_
 
     ``values`` are the tangent's nonzeros; ``bpos[p, a, b]`` is the position in them of
     entry ``(a, b)`` of block ``(bi[p], j)`` of the lower triangle, ``bp[j] <= p <
-    bp[j + 1]``.  A subtree of the elimination tree is a range of the postorder, so two disjoint ones can
-    be factored at once, each on its own stack (:class:`.linsolve.Factoriser`): the supernodes
-    read only their own columns of ``values`` and the update matrices of their children,
-    and write only their own columns of ``lx`` and ``dinv``.  The last supernode of a range
+    bp[j + 1]``.  A subtree of the elimination tree is a range of the postorder, so
+    disjoint ones can be factored at once, each on its own stack
+    (:class:`.linsolve.Factoriser`): the supernodes read only their own columns of
+    ``values`` and the update matrices of their children, and write only their own
+    columns of ``lx`` and ``dinv``.  The last supernode of a range
     always leaves its update matrix on the stack (never held in its front, as within a
     range when its parent is the next supernode), for the range that has its parent.
     ``position``, ``buffers`` and ``wt`` are scratch (:func:`workspace`).  Returns the

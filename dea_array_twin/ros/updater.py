@@ -4,7 +4,8 @@ The node's executor only moves messages.  Its callbacks hand work to a
 :class:`TwinUpdater` and return at once:
 
 * :meth:`~TwinUpdater.post` puts a command into a one-slot mailbox per kind (sample and
-  hold: a newer command of a kind replaces the older one, solved or not);
+  hold: a newer command of a kind replaces the older one, solved or not; with
+  ``take_commands``, below, the thread posts them itself);
   :meth:`~TwinUpdater.set_modes` and :meth:`~TwinUpdater.set_config` change what the
   next update uses;
 * the thread keeps its own clock: with a ``period`` it updates once per period on the
