@@ -362,6 +362,13 @@ class EquilibriumSolver:
         self._last_border: tuple | None = None  # (modes, IndenterBorder)
         #: What the continuation predictors extrapolate.
         self._last_path: PathRecord | None = None
+        #: Set by a twin that refreshes its tangent in a worker thread (``background_tangent`` of
+        #: :class:`.twin.ArrayTwin`): a tangent that contracts by less than ``contraction`` is then kept,
+        #: as in a checked load step, while the iterations it still needs cost less than a factorisation
+        #: (a refactorisation here would hold the solve for it), and :attr:`went_stale` says so.
+        self.refresh_elsewhere = False
+        #: Whether a solve kept such a tangent (with :attr:`refresh_elsewhere`) since this was cleared.
+        self.went_stale = False
 
     def _groups(self, modes: tuple[str, ...]) -> list[np.ndarray]:
         """Index sets into the prescribed dofs of each driven or biased disk's z dofs (rigid moves)."""
@@ -480,10 +487,11 @@ class EquilibriumSolver:
             # about how good the tangent is, nor does one that ended converged (the residual
             # at its round-off floor contracts by nothing): the tangent stays for the next solve.
             converged = last_dx <= x_tol and _balanced(res, free.size, r_tol, x_tol, fact, border)
-            stale = ratio > s.contraction and not (checked and _iterations_left(norm, r_tol, ratio)
-                                                   <= s.factorisation_cost)
-            if not s.modified_newton or (stale and not converged
-                                         and not (border is not None and border.skipped_solve)):
+            slow = ratio > s.contraction and not converged
+            stale = slow and not ((checked or self.refresh_elsewhere)
+                                  and _iterations_left(norm, r_tol, ratio) <= s.factorisation_cost)
+            self.went_stale |= slow and not stale and self.refresh_elsewhere
+            if not s.modified_newton or (stale and not (border is not None and border.skipped_solve)):
                 fact = None
             fresh = False
         return None

@@ -19,13 +19,16 @@ flies).  When the membrane's centre comes down to the indenter, contact resumes.
 contact is all or nothing over the flat disk.
 
 Background tangents (``background_tangent=True``, what the node uses): a warm update
-that needed more than one Newton iteration (its tangent, from an earlier state, has
-gone stale) has the tangent at its converged state computed and factored in a worker
-thread (the kernels release the GIL), and a later update starts from it; so the
-updates of a smooth command stream keep converging in one or two iterations without
-waiting for a factorisation (5-10 ms on the default mesh, several update periods at
-500 Hz).  The equilibria are the same (Newton converges to the same tolerances with
-any tangent); only which tangent an update starts from depends on timing.
+whose tangent, from an earlier state, has gone stale (it needed three Newton iterations,
+or a step contracted the residual by less than the solver's ``contraction``) has the
+tangent at its converged state computed and factored in a worker thread (the kernels
+release the GIL), and a later update starts from it; meanwhile the solver keeps the stale
+tangent while the iterations it needs cost less than a factorisation
+(:attr:`.solver.EquilibriumSolver.refresh_elsewhere`).  So the updates of a smooth command
+stream keep converging in one or two iterations without waiting for a factorisation
+(5-10 ms on the default mesh, several update periods at 500 Hz).  The equilibria are the
+same (Newton converges to the same tolerances with any tangent); only which tangent an
+update starts from depends on timing.
 """
 
 from __future__ import annotations
@@ -446,13 +449,16 @@ class ArrayTwin:
         again)."""
         self._collect_tangent()
         start_tangent = self.solver.factorisation
+        self.solver.refresh_elsewhere = self._pool is not None and BIASED not in modes
+        self.solver.went_stale = False
         try:
             result = self._attempt(d1, v1, f1, modes, check, dt, tic, cancel)
         except (ConvergenceError, SolveCancelled):
             self.solver.factorisation = start_tangent
             raise
-        if (self._pool is not None and self._pending is None and result.iterations >= BACKGROUND_ITERATIONS
-                and result.factorisations == 0 and BIASED not in self._held):
+        if (self.solver.refresh_elsewhere and self._pending is None and result.factorisations == 0
+                and (result.iterations >= BACKGROUND_ITERATIONS or self.solver.went_stale)
+                and BIASED not in self._held):
             free_prescribed = self.model.prescribed_dofs(self._held)[::-1]
             self._pending = self._pool.submit(self.solver.factorise_at, self._x, self.model.maxwell(v1),
                                               *free_prescribed, SolveStats(), BACKGROUND_FACTOR_THREADS)

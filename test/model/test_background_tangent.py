@@ -77,3 +77,29 @@ def test_a_background_tangent_under_way_at_a_reset_is_never_used():
     assert twin.tangents["installed"] == 0
     assert twin.solver.factorisation is not pending.result()
     np.testing.assert_allclose(flat.force, 0.0, atol=1e-9)
+
+
+def test_a_stale_tangent_is_kept_until_its_background_refresh_is_in():
+    """The node's command stream (a 1 Hz sine at 500 updates a second: 1-2 Newton iterations): a
+    tangent that contracts the residual by less than ``contraction`` is not refactored in the update
+    (the plain twin does so 7 times in 300 updates, each a stall of several update periods at 500 Hz)
+    but refreshed in the worker; the forces stay within 1e-6 of the largest of the plain twin's."""
+    cfg = ArrayConfig(**COARSE)
+    plain, background = ArrayTwin(cfg), ArrayTwin(cfg, background_tangent=True)
+    factorisations = {"plain": 0, "background": 0}
+    try:
+        for i in range(300):
+            if background._pending is not None:
+                background._pending.result(timeout=60)
+            results = {name: twin.solve(_sine(i, 500), 0.0, DRIVEN3, check_stability=False)
+                       for name, twin in (("plain", plain), ("background", background))}
+            largest = np.abs(results["plain"].force).max()
+            np.testing.assert_allclose(results["background"].force, results["plain"].force, rtol=0,
+                                       atol=1e-6 * largest)
+            if i > 0:  # the first update jumps from the flat state
+                for name, res in results.items():
+                    factorisations[name] += res.factorisations
+    finally:
+        background.close()
+    assert factorisations["plain"] >= 3 and factorisations["background"] == 0, factorisations
+    assert background.tangents["installed"] >= 3 and background.tangents["failed"] == 0
