@@ -80,6 +80,7 @@ class MembraneModel:
         self.yeoh = cfg.yeoh
         self.thickness = cfg.thickness
         self._dofs: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        self._disks: dict[tuple, tuple[np.ndarray, ...]] = {}
         self._last_maxwell: tuple[bytes, np.ndarray] = (b"", np.zeros(0))  # (voltage's bytes, its coefficients)
         mesh = self.mesh
         #: Frame positions without slip (eq. 8): the same for every solve.
@@ -182,9 +183,23 @@ class MembraneModel:
         height is an unknown: :meth:`place_disk`).
         """
         x.reshape(-1, 3)[self.mesh.frame_nodes] = self.frame_positions(modes, displacement)
-        for k, mode in enumerate(modes):
-            if mode == DRIVEN:
-                self.place_disk(x, k, displacement[k])
+        xy, xy_values, z, unit = self._driven_disks(tuple(mode == DRIVEN for mode in modes))
+        x[xy] = xy_values
+        x[z] = np.asarray(displacement, float)[unit]
+
+    def _driven_disks(self, driven: tuple[bool, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The in-plane dofs of the driven units' disk nodes with their positions ``(lp X, lp Y)`` [m], their
+        z dofs and each z dof's unit, cached per pattern of driven units (:meth:`apply_prescribed` in one
+        assignment each, not a loop over the disks: it runs twice per warm update)."""
+        if driven not in self._disks:
+            units = [k for k, on in enumerate(driven) if on]
+            nodes = [self.mesh.indenter_nodes[k] for k in units]
+            every = np.concatenate(nodes) if nodes else np.zeros(0, dtype=int)
+            xy = (3 * every[:, None] + np.arange(2)).ravel()
+            xy_values = (self.cfg.prestretch * self.mesh.nodes[every]).ravel()
+            unit = np.repeat(np.array(units, dtype=int), [n.size for n in nodes])
+            self._disks[driven] = (xy, xy_values, 3 * every + 2, unit)
+        return self._disks[driven]
 
     def place_disk(self, x: np.ndarray, unit: int, height: float) -> None:
         """Put the indenter disk of ``unit`` at ``(lp X, lp Y, height)`` in ``x``, in place (eq. 9)."""

@@ -65,6 +65,12 @@ from .membrane import BIASED, DRIVEN, MembraneModel, held
 from .snap import Snap, land_after_snap
 
 
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """``np.array_equal``, at once for one array (the model caches the free dofs per unit modes: the
+    comparison of two arrays of thousands of dofs runs several times per warm update)."""
+    return a is b or np.array_equal(a, b)
+
+
 def _norm(v: np.ndarray) -> float:
     """Euclidean norm without BLAS: a multithreaded BLAS ``dot`` on a loaded machine can take
     milliseconds for 15k entries (measured: 5 ms per call on the 3-by-3 array at load 5)."""
@@ -302,8 +308,7 @@ class PathRecord:
 
     def continues(self, x: np.ndarray, free: np.ndarray, voltage: np.ndarray) -> bool:
         """Whether a solve from ``x`` with these ``free`` dofs at ``voltage`` starts where this one ended."""
-        return ((self.end is x or np.array_equal(self.end, x)) and np.array_equal(self.free, free)
-                and np.array_equal(self.voltage, voltage))
+        return _same(self.end, x) and _same(self.free, free) and np.array_equal(self.voltage, voltage)
 
 
 def _extrapolate(scale: float, ratio: float | None, last: np.ndarray, before: np.ndarray | None,
@@ -426,7 +431,7 @@ class EquilibriumSolver:
         args = (m.yeoh, maxwell, m.thickness)
         r_tol = s.residual_tol * m.force_scale
         x_tol = s.increment_tol * m.length_scale
-        if fact is not None and not np.array_equal(fact.free, free):
+        if fact is not None and not _same(fact.free, free):
             fact = None
         fresh = False  # whether ``fact`` was computed at the current iterate
         r, point = internal_forces(m.disc, x, *args)
@@ -539,7 +544,7 @@ class EquilibriumSolver:
         fact = self.factorisation
         if border is not None:
             border.begin(0.0)
-        same_free, old, x_start = fact is not None and np.array_equal(fact.free, free), fact, x
+        same_free, old, x_start = fact is not None and _same(fact.free, free), fact, x
 
         @functools.cache
         def start_stable() -> bool:
@@ -643,7 +648,7 @@ class EquilibriumSolver:
                            else ""))
                 step *= 0.5
                 fact = self.factorisation if (self.factorisation is not None
-                                              and np.array_equal(self.factorisation.free, free)) else None
+                                              and _same(self.factorisation.free, free)) else None
                 continue
             x_new, r, point, fact_used = outcome
             if check or fact_used is None:
