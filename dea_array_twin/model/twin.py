@@ -49,7 +49,7 @@ from .dynamics import NewmarkStep
 from .kernels import solve_small
 from .membrane import BIASED, DRIVEN, FREE, MembraneModel, held
 from .snap import Snap
-from .solver import ConvergenceError, EquilibriumSolver, Factorisation, NewtonSettings, SolveCancelled, SolveStats
+from .solver import ConvergenceError, EquilibriumSolver, Factorisation, NewtonSettings, SolveCancelled
 
 __all__ = ["ArrayTwin", "TwinResult", "ConvergenceError", "BIASED", "DRIVEN", "FREE", "SolveCancelled",
            "command_error"]
@@ -459,9 +459,9 @@ class ArrayTwin:
         if (self.solver.refresh_elsewhere and self._pending is None and result.factorisations == 0
                 and (result.iterations >= BACKGROUND_ITERATIONS or self.solver.went_stale)
                 and BIASED not in self._held):
-            free_prescribed = self.model.prescribed_dofs(self._held)[::-1]
-            self._pending = self._pool.submit(self.solver.factorise_at, self._x, self.model.maxwell(v1),
-                                              *free_prescribed, SolveStats(), BACKGROUND_FACTOR_THREADS)
+            self._pending = self._pool.submit(self.solver.background_tangent, self._x, self.model.maxwell(v1),
+                                              self._held, self.solver.disk_groups(self._held),
+                                              BACKGROUND_FACTOR_THREADS)
             self._pending_over = self.solver.factorisation
         return result
 

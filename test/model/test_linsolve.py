@@ -161,7 +161,7 @@ def test_coupling_to_a_rigid_disk_move_equals_the_column_sum_of_k_fp():
     twin = ArrayTwin(ArrayConfig(**COARSE))
     twin.solve([0, 0.004, 0], 0.0, FREE_CENTRE)
     fact = twin.solver.factorisation
-    idx = twin.solver._groups(tuple(FREE_CENTRE))[0]
+    idx = twin.solver.disk_groups(tuple(FREE_CENTRE))[0]
     expected = np.asarray(fact.k_fp[:, idx].sum(axis=1)).ravel()
     np.testing.assert_allclose(fact.coupling(idx), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
     assert np.abs(expected).max() > 0
