@@ -199,7 +199,8 @@ class TwinNode(Node):
                                    self._publish_outputs, self._warn, self.solve_budget, stability_period,
                                    period=1.0 / self.update_rate if self.update_rate > 0 else 0.0,
                                    dynamics_dt=self.dynamics_dt,
-                                   take_commands=self._take_commands if self.commands_taken_by_solver else None)
+                                   take_commands=self._take_commands if self.commands_taken_by_solver else None,
+                                   background_checks=isinstance(twin, ArrayTwin))
         check_rate = declare_number(self, "fe_check_rate", 1.0,
                                     "model rom: FE re-solves of the latest command per second, in a background "
                                     "thread (difference in /diagnostics, resync above the ROM's tolerance); 0 = off")
@@ -541,12 +542,15 @@ class TwinNode(Node):
         stats = self.updater.stats()
         status = DiagnosticStatus(name=f"{self.get_fully_qualified_name()}: solver", hardware_id="dea_array_twin")
         problem = stats.thread_error or (stats.last_error and f"last solve failed: {stats.last_error}")
+        warnings = res.warnings if res is not None else []
+        if res is not None and res.stable is None and stats.stable is False:  # checked after the update
+            warnings = warnings + ["the last stability check found no stable minimum (tangent not positive definite)"]
         if problem:
             status.level, status.message = DiagnosticStatus.ERROR, problem
         elif self.recording_error or self._duplicate:
             status.level, status.message = DiagnosticStatus.WARN, self.recording_error or self._duplicate
-        elif res is not None and not res.ok:
-            status.level, status.message = DiagnosticStatus.WARN, "; ".join(res.warnings)
+        elif warnings:
+            status.level, status.message = DiagnosticStatus.WARN, "; ".join(warnings)
         else:
             status.level, status.message = DiagnosticStatus.OK, "ok"
         values = {
@@ -576,7 +580,8 @@ class TwinNode(Node):
                 status.level, status.message = DiagnosticStatus.WARN, rom_problem
         if res is not None:
             values.update(iterations=res.iterations, residual_N=res.residual, solve_time_ms=1e3 * res.solve_time,
-                          stable=res.stable, wrinkled=res.wrinkled, field_exceeded=res.field_exceeded,
+                          stable=stats.stable, stability_checked_s_ago=round(stats.stability_age, 3),
+                          wrinkled=res.wrinkled, field_exceeded=res.field_exceeded,
                           min_principal_stress_Pa=res.min_principal_stress,
                           peak_field_V_per_m=float(res.peak_field.max()))
         status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]

@@ -57,9 +57,11 @@ Counters, rates and solve-time percentiles for the node's diagnostics come from
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from collections import deque
+from concurrent.futures import Future
 from dataclasses import dataclass
 from typing import Callable, Mapping, Sequence
 
@@ -67,7 +69,7 @@ import numpy as np
 
 from ..model.config import ArrayConfig
 from ..model.solver import ConvergenceError, SolveCancelled
-from ..model.twin import ArrayTwin, TwinResult
+from ..model.twin import BIASED, ArrayTwin, TwinResult
 
 #: Seconds of solves the solve-time percentiles are taken over.
 STATS_WINDOW = 10.0
@@ -128,6 +130,10 @@ class UpdaterStats:
     solve_time_max: float = float("nan")
     last_error: str = ""
     thread_error: str = ""
+    #: The verdict of the last stability check (None: none yet, or no inertia) and how long ago the state it
+    #: judged was solved [s] (inf: none yet).
+    stable: bool | None = None
+    stability_age: float = float("inf")
 
 
 class TwinUpdater:
@@ -163,12 +169,18 @@ class TwinUpdater:
         wherever they wait and posts them (:meth:`post`).  Quasi-static
         updates with a ``period`` only (otherwise commands wake the thread, or a tick
         holds the commands it saw, and they must be posted as they come).
+    background_checks : bool
+        Check stability in the twin's worker thread
+        (:meth:`~dea_array_twin.model.twin.ArrayTwin.check_in_background`) after an
+        unchecked update instead of in the update itself, unless a unit is biased (its
+        check needs the bordered tangent: the update checks itself); an update whose state
+        the twin cannot check there after all has the next update checked in it.
     """
 
     def __init__(self, twin: ArrayTwin, commands: Mapping[str, Sequence[float]], modes: Sequence[str],
                  publish: Callable[[TwinResult], None], log: Callable[[str, str], None], budget: float,
                  stability_period: float, period: float = 0.0, dynamics_dt: float | None = None,
-                 take_commands: Callable[[], None] | None = None):
+                 take_commands: Callable[[], None] | None = None, background_checks: bool = False):
         if take_commands is not None and (period <= 0 or dynamics_dt is not None):
             raise ValueError("take_commands needs quasi-static updates with a period > 0")
         self.twin = twin
@@ -188,10 +200,14 @@ class TwinUpdater:
         self._resets: list[Callable[[bool, str], None]] = []
         self._stopping = False
         self._last_stability = -np.inf
+        self.background_checks = background_checks
+        self._check_here = False  # the twin could not check in the background: the next update checks itself
+        self._resets_done = 0  # a background verdict started before a reset is of a state no longer held
         self._abandoned_in_a_row = 0
         #: The last good result (None until the first solve succeeds); read by the node's timers.
         self.result: TwinResult | None = None
         self._stats = UpdaterStats()
+        self._checked_at: float | None = None  # when the state of the last stability verdict was solved
         self._solve_times: deque[tuple[float, float]] = deque()  # (end, duration) of recent solves
         self._output_times: deque[float] = deque()
         self._started = time.monotonic()
@@ -254,6 +270,8 @@ class TwinUpdater:
         now = time.monotonic()
         with self._cond:
             s = UpdaterStats(**vars(self._stats))
+            if self._checked_at is not None:
+                s.stability_age = now - self._checked_at
             self._prune(now)
             ends = np.array([end for end, _ in self._solve_times])
             times = np.array([dt for _, dt in self._solve_times])
@@ -326,6 +344,10 @@ class TwinUpdater:
                 if resets:
                     self.twin.reset()
                     self._last_stability = -np.inf
+                    with self._cond:
+                        self._resets_done += 1
+                        self._stats.stable, self._stats.stability_age = None, float("inf")
+                        self._checked_at = None
                 if snapshot is not None:
                     self._solve(snapshot)
                 for done in resets:
@@ -350,6 +372,7 @@ class TwinUpdater:
         budget = self.budget * 2 ** self._abandoned_in_a_row
         deadline = start + budget if self.budget > 0 else np.inf
         check = start - self._last_stability >= self.stability_period
+        in_background = check and self.background_checks and not self._check_here and BIASED not in snapshot.modes
 
         def cancel() -> bool:
             if self._stopping or self._resets:
@@ -361,7 +384,7 @@ class TwinUpdater:
             return self._seq != snapshot.seq
 
         try:
-            result = self._update_twin(snapshot, check, cancel)
+            result = self._update_twin(snapshot, check and not in_background, cancel)
         except SolveCancelled:
             if self._stopping or self._resets:
                 self._abandoned_in_a_row = 0
@@ -383,8 +406,17 @@ class TwinUpdater:
             return
         now = time.monotonic()
         self._abandoned_in_a_row = 0
-        if check:
+        if in_background:
+            verdict = self.twin.check_in_background()
+            self._check_here = verdict is None
+            if verdict is not None:
+                self._last_stability = start
+                verdict.add_done_callback(functools.partial(self._judged, now, self._resets_done))
+        elif check:
             self._last_stability = start
+            self._check_here = False
+            with self._cond:
+                self._stats.stable, self._checked_at = getattr(result, "stable", None), now
         # Snap-throughs and new lift-offs, for diagnostics (a result without them counts none).
         lifted = np.asarray(getattr(result, "lifted_off", ()), dtype=bool)
         before = np.asarray(getattr(self.result, "lifted_off", np.zeros_like(lifted)), dtype=bool)
@@ -396,6 +428,19 @@ class TwinUpdater:
             self._stats.updates += 1
             self._stats.last_error = ""
             self._solve_times.append((now, now - start))
+
+    def _judged(self, solved: float, resets: int, verdict: Future) -> None:
+        """A background stability check of the state solved at ``solved`` (monotonic) is done (worker thread)."""
+        with self._cond:
+            if resets != self._resets_done or (self._checked_at is not None and self._checked_at > solved):
+                return  # of a state before a reset, or older than the verdict held
+            if verdict.exception() is not None:
+                self._stats.stable, self._checked_at = None, solved
+                text = f"background stability check failed: {verdict.exception()!r}"
+            else:
+                self._stats.stable, self._checked_at = verdict.result(), solved
+                return
+        self._log("stability", text)
 
     def _update_twin(self, snapshot: CommandSnapshot, check_stability: bool,
                      cancel: Callable[[], bool]) -> TwinResult:

@@ -12,7 +12,7 @@ import numpy as np
 from conftest import COARSE
 
 from dea_array_twin import ArrayConfig, ArrayTwin
-from dea_array_twin.model.solver import Factorisation, NewtonSettings
+from dea_array_twin.model.solver import Factorisation, NewtonSettings, SolveStats
 
 DRIVEN3 = ("driven",) * 3
 
@@ -134,3 +134,39 @@ def test_a_background_tangent_comes_with_the_influence_vectors_of_the_disks(monk
     finally:
         twin.close()
     assert checked >= 10
+
+
+def test_a_stability_check_in_the_worker_gives_the_verdict_of_a_checked_solve():
+    """A stable state (a checked solve says so) and, put in its place, a saddle (both outer indenters
+    pulled 4 mm out by full Newton from the flat membrane, see test_array_physics): the worker's verdict
+    is the checked solve's, True, then False; its tangent is installed for the next update; a twin
+    without a worker, or holding a biased unit, has none."""
+    cfg = ArrayConfig(**COARSE)
+    twin = ArrayTwin(cfg, background_tangent=True)
+    try:
+        assert twin.check_in_background() is None  # no state yet
+        checked = twin.solve([0.004, 0.0, 0.004], 0.0, DRIVEN3, check_stability=True)
+        assert checked.stable is True and twin.check_in_background().result(timeout=60) is True
+        prescribed, free = twin.model.prescribed_dofs(DRIVEN3)
+        flat = twin.model.flat_state()
+        twin.model.apply_prescribed(flat, DRIVEN3, np.array([0.004, 0.0, 0.004]))
+        saddle = twin.solver._newton(flat, free, prescribed, np.zeros(twin.model.mesh.n_elements), None,
+                                     SolveStats())[0]
+        twin._x = saddle
+        verdict = twin.check_in_background()
+        assert verdict.result(timeout=60) is False
+        twin.solve([0.004, 0.0, 0.004], 0.0, DRIVEN3, check_stability=False)
+        assert twin.tangents["installed"] >= 1
+    finally:
+        twin.close()
+    biased = ArrayTwin(ArrayConfig(**COARSE, unit_modes=("driven", "biased", "driven"),
+                                   bias=[{"type": "linear", "stiffness": 40.0, "free_position": 0.001}]),
+                       background_tangent=True)
+    try:
+        biased.solve([0.0, 0.0, 0.0], 0.0, check_stability=False)
+        assert biased.check_in_background() is None
+    finally:
+        biased.close()
+    plain = ArrayTwin(cfg)
+    plain.solve([0.001, 0.0, 0.0], 0.0, DRIVEN3)
+    assert plain.check_in_background() is None

@@ -6,6 +6,8 @@ stand-in asks ``cancel()`` every millisecond, as the Newton loop does every iter
 
 import threading
 import time
+from concurrent.futures import Future
+from types import SimpleNamespace
 
 import pytest
 
@@ -175,5 +177,77 @@ def test_commands_taken_by_the_thread_itself_are_used_at_the_next_tick_and_end_a
         assert time.monotonic() - tic < 1.0
         assert ("cancelled", 5.0) in twin.log and updater.stats().budget_overruns == 1
         assert takers == {"twin-solver"}
+    finally:
+        updater.stop()
+
+
+class CheckingTwin:
+    """Records whether each solve checked stability; hands out the background checks' verdicts as futures the
+    test settles (``background``), or has none (returns None, as a twin holding a biased unit)."""
+
+    def __init__(self, background: bool):
+        self.config = ArrayConfig()
+        self.background = background
+        self.checked: list[bool] = []
+        self.verdicts: list[Future] = []
+
+    def reset(self):
+        pass
+
+    def solve(self, modes, check_stability, cancel, displacement, voltage):
+        self.checked.append(check_stability)
+        return SimpleNamespace(stable=True if check_stability else None)
+
+    def check_in_background(self):
+        if not self.background:
+            return None
+        self.verdicts.append(Future())
+        return self.verdicts[-1]
+
+
+def _checking_updater(twin):
+    published = []
+    updater = TwinUpdater(twin, {"displacement": [0.0] * 3, "voltage": [0.0] * 3}, ("driven",) * 3,
+                          published.append, lambda key, text: None, 0.05, stability_period=0.0, background_checks=True)
+    updater.start()
+    wait_until(lambda: published)
+    return updater, published
+
+
+def test_background_checks_leave_the_updates_unchecked_and_report_the_newest_verdict():
+    """Every update due for a check (stability_period 0): none is checked in the update, each asks the twin
+    for a background check; the stats report the verdict of the newest state judged, not of an older one
+    settled later, and none from before a reset."""
+    twin = CheckingTwin(background=True)
+    updater, published = _checking_updater(twin)
+    try:
+        for k in range(1, 4):
+            updater.post("displacement", [k * 1e-3, 0, 0])
+            wait_until(lambda: len(twin.verdicts) == k + 1)
+        assert twin.checked == [False] * 4 and updater.stats().stable is None
+        twin.verdicts[2].set_result(False)
+        assert updater.stats().stable is False and 0 <= updater.stats().stability_age < 10
+        twin.verdicts[1].set_result(True)  # an older state's verdict, settled later
+        assert updater.stats().stable is False
+        twin.verdicts[3].set_result(True)
+        assert updater.stats().stable is True
+        answers = []
+        updater.reset(lambda ok, text: answers.append(ok))
+        wait_until(lambda: answers)
+        twin.verdicts[0].set_result(False)  # from before the reset
+        assert updater.stats().stable is None
+    finally:
+        updater.stop()
+
+
+def test_an_update_the_twin_cannot_check_in_the_background_has_the_next_one_checked_in_it():
+    twin = CheckingTwin(background=False)
+    updater, published = _checking_updater(twin)
+    try:
+        for k in range(1, 4):
+            updater.post("displacement", [k * 1e-3, 0, 0])
+            wait_until(lambda: len(twin.checked) == k + 1)
+        assert twin.checked == [False, True, False, True]
+        assert updater.stats().stable is True
     finally:
         updater.stop()
