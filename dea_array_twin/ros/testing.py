@@ -46,6 +46,7 @@ from typing import Any, Callable
 
 import rclpy
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -276,6 +277,12 @@ class TwinHarness:
     def command_subscribers(self, kind: str) -> int:
         """Subscriptions to ``command/<kind>`` the harness's publisher has matched (its side of discovery)."""
         return self._pubs[kind].get_subscription_count()
+
+    def commands_acknowledged(self, kind: str, timeout: float = 30.0) -> bool:
+        """Whether every subscription the ``command/<kind>`` publisher has matched acknowledged all it sent,
+        within ``timeout`` [s] (reliable QoS: a subscriber that finished discovery late gets a sample
+        only at the publisher's next heartbeat, seconds on)."""
+        return self._pubs[kind].wait_for_all_acked(Duration(seconds=timeout))
 
     def send_displacement(self, values) -> None:
         """Publish a displacement command [m], one value per unit."""

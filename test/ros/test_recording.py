@@ -143,7 +143,10 @@ def test_two_twins_started_in_the_same_second_write_two_readable_bags(tmp_path):
                 assert now < deadline, recent
                 time.sleep(0.1)
             h.send_displacement([0.0, 0.002, 0.0])
-            time.sleep(1.0)
+            # Every subscription (both twins' and their recorders') has the command: a recorder
+            # whose side of discovery finished late once missed it for the 1 s this test waited.
+            assert h.commands_acknowledged("displacement", timeout=30)
+            time.sleep(1.0)  # from each recorder's subscription to its writer's queue: milliseconds
         finally:
             second.send_signal(signal.SIGINT)
             assert second.wait(timeout=20) == 0
