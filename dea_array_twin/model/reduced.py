@@ -227,6 +227,24 @@ class ReducedModel:
         """Number of sampled points with a positive weight."""
         return int(np.count_nonzero(self.point_weight > 0))
 
+    def validation_warning(self) -> str:
+        """What its validation table says against using it, or '' (errors within :attr:`tolerance`).
+
+        A ROM whose held-out errors exceeded its tolerance may answer that far off the FE; the
+        text says how far, on how many commands, and how many of those the error indicator
+        missed (it does not see every error on large arrays: ``docs/rom.md``).
+        """
+        facts = self.validation
+        if "force_error_max" not in facts:
+            return ""
+        force, capacitance = facts["force_error_max"], facts["capacitance_error_max"]
+        if max(force, capacitance) <= self.tolerance:
+            return ""
+        return (f"its validation found errors above its tolerance {self.tolerance:.3%} (force up to {force:.3%}, "
+                f"capacitance up to {capacitance:.3%}) on {facts['over_tolerance']} of {facts['commands']} held-out "
+                f"commands, {facts['over_tolerance_unflagged']} of them missed by the error indicator: an update "
+                f"it answers may be that far off the FE")
+
     _ARRAYS = ("reference", "lift", "basis", "enrichment", "point_element", "point_index", "point_weight",
                "force_reference", "train_parameters", "train_coordinates", "singular_values")
 

@@ -294,6 +294,9 @@ class TwinNode(Node):
         # A refresh of the reduced Hessian (0.5-4 ms, ~10 a second on a smooth stream) would
         # hold the solver thread for one to four 1 kHz ticks: it runs in a worker thread.
         twin = ReducedTwin(cfg, load_rom(rom_file, cfg), background_refresh=True)
+        if twin.rom.validation_warning():
+            self.get_logger().warning(f"rom_file {rom_file}: {twin.rom.validation_warning()} (fe_check_rate compares "
+                                      "it with the FE while it runs)")
         if not twin.answers(cfg.modes):
             self.get_logger().warning(
                 f"unit_modes {list(cfg.modes)} differ from the modes the ROM was trained for ({list(twin.modes)}; "
@@ -595,6 +598,7 @@ class TwinNode(Node):
         twin = self.rom_twin
         fallbacks = twin.fallbacks
         values.update(model="rom", rom_file=twin.rom.config_hash, rom_tolerance=twin.tolerance,
+                      rom_validation=twin.rom.validation_warning() or "within its tolerance",
                       rom_updates=twin.updates, rom_refreshes=twin.refreshes, rom_resyncs=twin.resyncs,
                       **{f"rom_fallbacks_{kind}": fallbacks.get(kind, 0)
                          for kind in FALLBACKS})

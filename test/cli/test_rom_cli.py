@@ -1,12 +1,14 @@
 """``dea-twin rom train`` and ``rom info``: a validated ROM file, its summary, clear errors."""
 
+import dataclasses
+
 import numpy as np
 
 from dea_array_twin import ArrayConfig
 from dea_array_twin.cli.main import main
 from dea_array_twin.configfile import load_config
 from dea_array_twin.model.reduced import config_hash
-from dea_array_twin.romfile import load_rom
+from dea_array_twin.romfile import load_rom, save_rom
 
 
 def test_rom_train_writes_a_validated_rom_of_the_config_and_info_shows_it(coarse_yaml, tmp_path, capsys):
@@ -26,8 +28,14 @@ def test_rom_train_writes_a_validated_rom_of_the_config_and_info_shows_it(coarse
     assert table["force_error_max"] <= 0.05 and table["capacitance_error_max"] <= 0.05
     assert "validation on 3 held-out commands" in printed and f"{table['force_error_max']:.3%}" in printed
     assert main(["rom", "info", str(out)]) == 0
-    info = capsys.readouterr().out
+    captured = capsys.readouterr()
+    info = captured.out
     assert rom.config_hash in info and "5 POD modes" in info and "8 snapshots" in info
+    assert "warning" not in captured.err
+    loose = dataclasses.replace(rom, validation=dict(table, capacitance_error_max=0.08, over_tolerance=1,
+                                                     over_tolerance_unflagged=1))
+    assert main(["rom", "info", str(save_rom(loose, tmp_path / "loose"))]) == 0
+    assert "warning: its validation found errors above its tolerance 5.000%" in capsys.readouterr().err
 
 
 def test_rom_train_refuses_bad_options_and_rom_info_a_missing_file(tmp_path, capsys):

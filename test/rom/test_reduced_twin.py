@@ -154,6 +154,22 @@ def test_indicator_flags_every_command_whose_error_exceeds_the_tolerance(cfg, ro
     assert exceeded >= 3  # the commands do leave the model's accuracy
 
 
+def over_tolerance(rom, force=0.0056, capacitance=0.0031, over=43, unflagged=25):
+    """``rom`` with a validation table whose errors exceeded its tolerance (as the 4-by-4's in docs/rom.md)."""
+    table = dict(rom.validation, force_error_max=force, capacitance_error_max=capacitance, commands=60,
+                 over_tolerance=over, over_tolerance_unflagged=unflagged)
+    return dataclasses.replace(rom, validation=table)
+
+
+def test_a_rom_validated_beyond_its_tolerance_says_how_far_and_what_the_indicator_missed(rom):
+    assert rom.validation_warning() == ""  # the coarse ROM validated within its tolerance
+    text = over_tolerance(rom).validation_warning()
+    assert f"tolerance {rom.tolerance:.3%}" in text and "force up to 0.560%" in text
+    assert "capacitance up to 0.310%" in text and "on 43 of 60 held-out commands, 25 of them missed" in text
+    edge = over_tolerance(rom, force=rom.tolerance, capacitance=rom.tolerance, over=0, unflagged=0)
+    assert edge.validation_warning() == ""  # at the tolerance: within it
+
+
 def test_a_rom_for_another_config_is_refused_and_a_file_round_trips(cfg, rom, tmp_path):
     path = save_rom(rom, tmp_path / "array")
     assert path.name == "array.npz"

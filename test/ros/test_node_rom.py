@@ -1,5 +1,6 @@
 """The twin node with ``model: rom``: the reduced twin in the solver thread, checked by the FE."""
 
+import dataclasses
 import subprocess
 import sys
 
@@ -7,6 +8,7 @@ import numpy as np
 import pytest
 
 from dea_array_twin import ArrayTwin
+from dea_array_twin.romfile import save_rom
 from dea_array_twin.ros.testing import TwinHarness
 
 
@@ -42,6 +44,19 @@ def test_node_with_a_rom_answers_within_its_tolerance_and_publishes_the_fe_check
     deep_fe = ArrayTwin(cfg).solve([0.002, 0.012, 0.003], v)
     assert list(deep.effort) == pytest.approx(deep_fe.force.tolist(), rel=1e-5, abs=1e-8)
     assert after["rom_fallback"].startswith("envelope:")
+
+
+def test_a_node_with_a_rom_validated_beyond_its_tolerance_warns_at_start_and_in_diagnostics(coarse_rom, tmp_path):
+    _, rom, _, yaml_path = coarse_rom
+    table = dict(rom.validation, force_error_max=0.0056, over_tolerance=4, over_tolerance_unflagged=3)
+    path = save_rom(dataclasses.replace(rom, validation=table), tmp_path / "loose")
+    params = {"config_file": str(yaml_path), "model": "rom", "rom_file": str(path), "update_rate": 50.0,
+              "fe_check_rate": 0.0, "marker_rate": 0.0}
+    with TwinHarness(parameters=params, process=True) as h:
+        _, values = _diag(h, lambda kv: "rom_validation" in kv)
+        output = h.output()
+    assert "force up to 0.560%" in values["rom_validation"] and "3 of them missed" in values["rom_validation"]
+    assert f"rom_file {path}: its validation found errors above its tolerance" in output
 
 
 def test_node_refuses_a_rom_trained_for_another_config(coarse_rom):
