@@ -102,8 +102,9 @@ def run_from_args(args: argparse.Namespace) -> int:
             print(f"dea-twin rom: error: {exc}", file=sys.stderr)
             return 2
         print("\n".join([f"{args.rom_file}: config hash {rom.config_hash}"] + summary_lines(rom)))
-        if rom.validation_warning():
-            print(f"dea-twin rom: warning: {rom.validation_warning()}", file=sys.stderr)
+        warning = rom.validation_warning()
+        if warning:
+            print(f"dea-twin rom: warning: {warning}", file=sys.stderr)
         return 0
     from tqdm import tqdm
 

@@ -459,11 +459,13 @@ class ArrayTwin:
         if (self.solver.refresh_elsewhere and self._pending is None and result.factorisations == 0
                 and (result.iterations >= BACKGROUND_ITERATIONS or self.solver.went_stale)
                 and BIASED not in self._held):
-            self._pending = self._pool.submit(self.solver.background_tangent, self._x, self.model.maxwell(v1),
-                                              self._held, self.solver.disk_groups(self._held),
-                                              BACKGROUND_FACTOR_THREADS)
-            self._pending_over = self.solver.factorisation
+            self._pending, self._pending_over = self._tangent_job(), self.solver.factorisation
         return result
+
+    def _tangent_job(self) -> Future:
+        """The tangent at the current state factored in the worker thread, with the disks' influence vectors."""
+        return self._pool.submit(self.solver.background_tangent, self._x, self.model.maxwell(self._voltage),
+                                 self._held, self.solver.disk_groups(self._held), BACKGROUND_FACTOR_THREADS)
 
     def check_in_background(self) -> Future | None:
         """Check whether the current state is a stable minimum in the worker thread (``background_tangent``).
@@ -479,8 +481,7 @@ class ArrayTwin:
         """
         if self._pool is None or self.last is None or BIASED in self._held:
             return None
-        job = self._pool.submit(self.solver.background_tangent, self._x, self.model.maxwell(self._voltage),
-                                self._held, self.solver.disk_groups(self._held), BACKGROUND_FACTOR_THREADS)
+        job = self._tangent_job()
         if self._pending is None:
             self._pending, self._pending_over = job, self.solver.factorisation
         verdict: Future = Future()

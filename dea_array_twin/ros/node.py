@@ -294,9 +294,10 @@ class TwinNode(Node):
         # A refresh of the reduced Hessian (0.5-4 ms, ~10 a second on a smooth stream) would
         # hold the solver thread for one to four 1 kHz ticks: it runs in a worker thread.
         twin = ReducedTwin(cfg, load_rom(rom_file, cfg), background_refresh=True)
-        if twin.rom.validation_warning():
-            self.get_logger().warning(f"rom_file {rom_file}: {twin.rom.validation_warning()} (fe_check_rate compares "
-                                      "it with the FE while it runs)")
+        warning = twin.rom.validation_warning()
+        if warning:
+            self.get_logger().warning(f"rom_file {rom_file}: {warning} (fe_check_rate compares it with the FE while "
+                                      "it runs)")
         if not twin.answers(cfg.modes):
             self.get_logger().warning(
                 f"unit_modes {list(cfg.modes)} differ from the modes the ROM was trained for ({list(twin.modes)}; "
