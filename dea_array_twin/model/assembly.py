@@ -53,6 +53,16 @@ class Discretisation:
         return 3 * self.mesh.n_nodes
 
     @functools.cached_property
+    def grad_elements_last(self) -> tuple[np.ndarray, np.ndarray]:
+        """``grad`` as (nen, 2, nq, ne) and ``weight`` as (nq, ne), contiguous.
+
+        The layout of the compiled residual (:mod:`.kernels`), which reads a block of
+        consecutive elements at each quadrature point.
+        """
+        return (np.ascontiguousarray(self.grad.transpose(2, 3, 1, 0)),
+                np.ascontiguousarray(self.weight.T))
+
+    @functools.cached_property
     def _grad_by_node(self) -> np.ndarray:
         """``grad`` as (ne, nen, nq*2), for ``F = x_e^T G`` as one batched product."""
         ne, nq, nen, _ = self.grad.shape

@@ -1,9 +1,11 @@
 """Compiled (numba) element loops for the residual and the tangent: the solver's hot path.
 
 The same equations as the numpy reference in :mod:`.assembly` (which the tests compare
-these against to 1e-12 relative), written as one loop over elements and quadrature
-points that keeps every intermediate in registers instead of arrays of shape
-``(ne, nq, ...)``.  With ``F = [F1 F2]`` (3x2), ``g = dPsi/dc``, ``H = d2Psi/dc2``
+these against to 1e-12 relative), written as loops that keep every intermediate in
+registers or small buffers instead of arrays of shape ``(ne, nq, ...)``: the tangent
+one element at a time, the residual (the warm update's hot path, two calls per update)
+on blocks of elements, their loops running over the block so that the compiler
+vectorises them.  With ``F = [F1 F2]`` (3x2), ``g = dPsi/dc``, ``H = d2Psi/dc2``
 (:mod:`.material`) and the reference gradients ``dN_a = (dN_a1, dN_a2)``:
 
     r_a  = t0 sum_q w_q  F S dN_a,            S = [[2 g0, g2], [g2, 2 g1]],
@@ -61,29 +63,68 @@ def _point(xe, dn, k, c10, c20, c30, f, c_out, g_out):
     return det, dy, ddy
 
 
+_LANES = 64  # elements per block of the residual: one vector lane each
+
+
 @numba.njit(**_JIT)
 def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
-    """Fill ``r`` (zeroed here), ``c`` and ``g`` (shape (ne, nq, 3)) of positions ``x``."""
-    ne, nq, nen, _ = grad.shape
+    """Fill ``r`` (zeroed here), ``c`` and ``g`` (shape (ne, nq, 3)) of positions ``x``.
+
+    ``grad`` (nen, 2, nq, ne) and ``wt`` (nq, ne) have the elements last
+    (:attr:`.assembly.Discretisation.grad_elements_last`): a block of ``_LANES``
+    elements is worked on at once, each quadrature point's loops running over the
+    block's elements, which the compiler turns into vector instructions (1.7x the
+    element-at-a-time loop on this machine's AVX-512).  Same operations per element in
+    the same order as :func:`_point`, so the same result to round-off.
+    """
+    nen, _, nq, ne = grad.shape
     r[:] = 0.0
-    xe = np.empty((nen, 3))
-    f = np.empty((3, 2))
-    for e in range(ne):
+    xb = np.empty((nen, 3, _LANES))
+    rb = np.empty((nen, 3, _LANES))
+    f = np.empty((6, _LANES))  # F11 F12 F21 F22 F31 F32 of each element of the block
+    s = np.empty((3, _LANES))  # w S11, w S22, w S12
+    for e0 in range(0, ne, _LANES):
+        nb = min(_LANES, ne - e0)
         for n in range(nen):
-            for i in range(3):
-                xe[n, i] = x[3 * elements[e, n] + i]
-        k = maxwell[e]
-        for q in range(nq):
-            dn = grad[e, q]
-            _point(xe, dn, k, c10, c20, c30, f, c[e, q], g[e, q])
-            w = wt[e, q]
-            s00, s11, s01 = 2.0 * g[e, q, 0] * w, 2.0 * g[e, q, 1] * w, g[e, q, 2] * w
-            for n in range(nen):
-                sd0 = s00 * dn[n, 0] + s01 * dn[n, 1]
-                sd1 = s01 * dn[n, 0] + s11 * dn[n, 1]
-                base = 3 * elements[e, n]
+            for j in range(nb):
+                base = 3 * elements[e0 + j, n]
                 for i in range(3):
-                    r[base + i] += f[i, 0] * sd0 + f[i, 1] * sd1
+                    xb[n, i, j] = x[base + i]
+        rb[:, :, :nb] = 0.0
+        for q in range(nq):
+            f[:, :nb] = 0.0
+            for n in range(nen):
+                for j in range(nb):
+                    d0, d1 = grad[n, 0, q, e0 + j], grad[n, 1, q, e0 + j]
+                    for i in range(3):
+                        f[2 * i, j] += xb[n, i, j] * d0
+                        f[2 * i + 1, j] += xb[n, i, j] * d1
+            for j in range(nb):
+                e = e0 + j
+                c0 = f[0, j] * f[0, j] + f[2, j] * f[2, j] + f[4, j] * f[4, j]
+                c1 = f[1, j] * f[1, j] + f[3, j] * f[3, j] + f[5, j] * f[5, j]
+                c2 = f[0, j] * f[1, j] + f[2, j] * f[3, j] + f[4, j] * f[5, j]
+                det = c0 * c1 - c2 * c2
+                xi = c0 + c1 + 1.0 / det - 3.0
+                dy = c10 + xi * (2.0 * c20 + 3.0 * c30 * xi)
+                a = dy / det**2 + maxwell[e]
+                c[e, q, 0], c[e, q, 1], c[e, q, 2] = c0, c1, c2
+                g0, g1, g2 = dy - a * c1, dy - a * c0, 2.0 * a * c2
+                g[e, q, 0], g[e, q, 1], g[e, q, 2] = g0, g1, g2
+                w = wt[q, e]
+                s[0, j], s[1, j], s[2, j] = 2.0 * g0 * w, 2.0 * g1 * w, g2 * w
+            for n in range(nen):
+                for j in range(nb):
+                    d0, d1 = grad[n, 0, q, e0 + j], grad[n, 1, q, e0 + j]
+                    sd0 = s[0, j] * d0 + s[2, j] * d1
+                    sd1 = s[2, j] * d0 + s[1, j] * d1
+                    for i in range(3):
+                        rb[n, i, j] += f[2 * i, j] * sd0 + f[2 * i + 1, j] * sd1
+        for n in range(nen):
+            for j in range(nb):
+                base = 3 * elements[e0 + j, n]
+                for i in range(3):
+                    r[base + i] += rb[n, i, j]
 
 
 @numba.njit(inline="always", **_JIT)
@@ -276,8 +317,8 @@ def internal_forces(disc: Discretisation, x: np.ndarray, yeoh: Yeoh, maxwell: np
     ne, nq = disc.weight.shape
     r = np.empty(disc.n_dofs)
     c, g = np.empty((ne, nq, 3)), np.empty((ne, nq, 3))
-    _residual(x, disc.mesh.elements, disc.grad, thickness * disc.weight, maxwell,
-              yeoh.c10, yeoh.c20, yeoh.c30, r, c, g)
+    grad, weight = disc.grad_elements_last
+    _residual(x, disc.mesh.elements, grad, thickness * weight, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, r, c, g)
     return r, PointState(c, g)
 
 
