@@ -246,7 +246,9 @@ def main() -> None:
         rom = result.rom
         print(f"training: {time.perf_counter() - tic:.0f} s wall with {args.workers} worker(s) "
               f"(FE snapshots {result.timings['snapshots_s']:.0f} s, {result.timings['snapshots_cpu_s']:.0f} CPU s; "
-              f"build {result.timings['build_s']:.0f} s; FE validation {result.timings['validation_fe_s']:.0f} s); "
+              f"build {result.timings['build_s']:.0f} s; "
+              f"FE calibration {result.timings.get('calibration_s', 0.0):.0f} s; "
+              f"FE validation {result.timings['validation_fe_s']:.0f} s); "
               f"{load()}")
         if args.save:
             print(f"saved {save_rom(rom, args.save)}")

@@ -38,6 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "value; updates whose indicator exceeds it go to the FE (default 1e-3 = 0.1%%)")
     train.add_argument("--snapshots", type=int, default=240, help="FE training snapshots (default 240)")
     train.add_argument("--validation", type=int, default=60, help="held-out commands to validate on (default 60)")
+    train.add_argument("--calibration", type=int,
+                       help="commands that calibrate the error indicator against the FE (default: as many as "
+                            "--validation; 0: the raw indicator)")
     train.add_argument("--displacement-range", type=float_list(count=2, example="0,0.015"),
                        help="indenter displacement range of every driven unit [m] (default 0 to 0.75 D)")
     train.add_argument("--voltage-range", type=float_list(count=2, example="0,2730"),
@@ -45,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--unit-modes", type=word_list,
                        help="per-unit mode, 'driven' or 'free', comma separated (default: the config's "
                             "unit_modes)")
-    train.add_argument("--seed", type=int, default=0, help="sampling seed (validation uses seed + 1)")
+    train.add_argument("--seed", type=int, default=0,
+                       help="sampling seed (validation uses seed + 1, calibration seed + 2)")
     where = train.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=1, help="local worker processes for the FE snapshots")
     where.add_argument("--scheduler", metavar="ADDRESS", help="Dask distributed scheduler for the FE snapshots")
@@ -78,6 +82,8 @@ def summary_lines(rom: ReducedModel) -> list[str]:
              f"tolerance {rom.tolerance:g}"]
     if "commands" in facts:
         t = facts.get("timings", {})
+        calibrated = (f"scaled by {rom.indicator_scale:.3g}, calibrated on {facts['calibration_commands']} commands"
+                      if facts.get("calibration_commands") else "raw, not calibrated")
         lines += [
             f"training: {facts['snapshots']} snapshots ({facts['snapshot_failures']} failed) in "
             f"{t.get('snapshots_s', float('nan')):.0f} s ({t.get('snapshots_cpu_s', float('nan')):.0f} CPU s); "
@@ -87,7 +93,8 @@ def summary_lines(rom: ReducedModel) -> list[str]:
             f"mean {facts['force_error_mean']:.4%} (of each unit's largest |F|); capacitance error max "
             f"{facts['capacitance_error_max']:.3%} mean {facts['capacitance_error_mean']:.4%} "
             f"(dC: max {facts['delta_capacitance_error_max']:.2%} of its range)",
-            f"indicator: max {facts['indicator_max']:.2e}; {facts['flagged']} command(s) above tolerance, "
+            f"indicator ({calibrated}): max {facts['indicator_max']:.2e}; {facts['flagged']} command(s) above "
+            f"tolerance, "
             f"{facts['over_tolerance']} with an error above it ({facts['over_tolerance_unflagged']} not flagged); "
             f"reduced cold solve {facts['cold_solve_ms_median']:.1f} ms (median)"]
     return lines
@@ -115,6 +122,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         for name in ("modes", "snapshots", "validation", "workers"):
             if getattr(args, name) < 1:
                 raise ConfigError(f"--{name} must be >= 1, got {getattr(args, name)}")
+        if args.calibration is not None and args.calibration < 0:
+            raise ConfigError(f"--calibration must be >= 0, got {args.calibration}")
         if not 0 < args.tolerance < 1:
             raise ConfigError(f"--tolerance must be in (0, 1), got {args.tolerance}")
         envelope = _envelope(cfg, args)
@@ -134,8 +143,8 @@ def run_from_args(args: argparse.Namespace) -> int:
 
         tic = time.perf_counter()
         result = train(cfg, envelope, args.snapshots, args.modes, args.tolerance, args.validation, args.seed,
-                       args.workers, args.scheduler, progress, lambda text: print(f"dea-twin rom: {text}",
-                                                                                  file=sys.stderr))
+                       args.workers, args.scheduler, progress,
+                       lambda text: print(f"dea-twin rom: {text}", file=sys.stderr), args.calibration)
         path = save_rom(result.rom, out)
     except (ConfigError, ValueError, ExecutorError, OSError) as exc:
         print(f"dea-twin rom: error: {exc}", file=sys.stderr)

@@ -190,6 +190,10 @@ class ReducedModel:
         of the force errors (tolerances and the validation table are relative to it).
     tolerance : float
         Relative error above which the indicator sends an update to the FE.
+    indicator_scale : float
+        What the raw indicator is multiplied by (at least 1): the largest ratio of error
+        to raw indicator over the calibration commands of training
+        (:func:`dea_array_twin.rom.train.indicator_scale`); 1 for a ROM trained before it.
     train_parameters : ndarray, shape (n_snapshots, nd + n_units)
         Driven displacements [m] and voltages [V] of the training snapshots.
     train_coordinates : ndarray, shape (n_snapshots, r)
@@ -216,6 +220,7 @@ class ReducedModel:
     train_coordinates: np.ndarray
     singular_values: np.ndarray
     validation: dict = field(default_factory=dict)
+    indicator_scale: float = 1.0
 
     @property
     def n_modes(self) -> int:
@@ -254,7 +259,7 @@ class ReducedModel:
         out.update(self.envelope.to_arrays())
         out.update(format_version=np.array(FORMAT_VERSION), config=np.array(json.dumps(self.config)),
                    config_hash=np.array(self.config_hash), tolerance=np.array(self.tolerance),
-                   validation=np.array(json.dumps(self.validation)))
+                   indicator_scale=np.array(self.indicator_scale), validation=np.array(json.dumps(self.validation)))
         return out
 
     @classmethod
@@ -274,6 +279,7 @@ class ReducedModel:
             values = {name: np.asarray(arrays[name]) for name in cls._ARRAYS}
             return cls(config=json.loads(str(arrays["config"])), config_hash=str(arrays["config_hash"]),
                        envelope=Envelope.from_arrays(arrays), tolerance=float(arrays["tolerance"]),
+                       indicator_scale=float(arrays["indicator_scale"]) if "indicator_scale" in arrays else 1.0,
                        validation=json.loads(str(arrays["validation"])), **values)
         except KeyError as exc:
             raise RomMismatchError(f"ROM data lacks the array {exc.args[0]!r}") from None

@@ -33,7 +33,9 @@ basis,
 
     delta_o = (H_oq H_qq^-1 H_qw - H_ow) S^-1 g_w,     S = H_ww - H_wq H_qq^-1 H_qw,
 
-and the indicator is the largest ``|delta F_k| / F_ref_k`` or ``|delta C_u| / C_u``.
+and the indicator is the largest ``|delta F_k| / F_ref_k`` or ``|delta C_u| / C_u``, times the
+ROM's ``indicator_scale`` (calibrated in training against the FE: the estimate is of the right
+size, not a bound, and falls short of the error by up to a few times on the 4-by-4).
 
 **Fallback**: a command outside the trained envelope (or with other unit modes), an
 indicator above ``tolerance``, or a reduced Newton that fails is answered by the FE twin
@@ -702,7 +704,8 @@ class ReducedTwin:
             field_exceeded=bool(peak.max() > self._breakdown), stable=stable, iterations=evals,
             factorisations=refreshes, step_cuts=0, residual=float(info[3]), solve_time=time.perf_counter() - tic,
             velocity=velocity, bias_force=bias_force, external_force=external, lifted_off=self._none, snaps=(),
-            error_indicator=float(info[2]), recover=functools.partial(_recover, self._reference, self._vectors, z[1:]))
+            error_indicator=float(info[2]) * self.rom.indicator_scale,
+            recover=functools.partial(_recover, self._reference, self._vectors, z[1:]))
 
     def _check_heights(self, d1: np.ndarray, units: np.ndarray, predicted: np.ndarray | None) -> None:
         """Refuse biased heights outside the trained range, or converged more than the FE's ``jump_tol`` (a

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from dea_array_twin import ArrayTwin
-from dea_array_twin.model.reduced import Envelope, RomMismatchError
+from dea_array_twin.model.reduced import Envelope, ReducedModel, RomMismatchError
 from dea_array_twin.model.reduced_twin import ReducedTwin
 from dea_array_twin.model.solver import SolveCancelled
+from dea_array_twin.rom.train import Validation, indicator_scale
 from dea_array_twin.romfile import RomFileError, load_rom, save_rom
 
 TOLERANCE = 2e-3
@@ -152,6 +153,40 @@ def test_indicator_flags_every_command_whose_error_exceeds_the_tolerance(cfg, ro
             exceeded += 1
             assert res.error_indicator > TOLERANCE, (d, v, error, res.error_indicator)
     assert exceeded >= 3  # the commands do leave the model's accuracy
+
+
+def test_the_indicator_scale_is_the_largest_ratio_of_error_to_indicator_on_the_calibration_commands():
+    """Errors below a tenth of the tolerance do not count, and the scale is never below 1."""
+    def calibration(worst, indicator):
+        worst, indicator = np.array(worst), np.array(indicator)
+        zeros = np.zeros((worst.size, 3))
+        return Validation(np.column_stack([worst, zeros[:, :2]]), zeros, zeros, indicator, np.zeros(worst.size))
+
+    tol = 1e-3
+    assert indicator_scale(calibration([5e-4, 2e-3, 3e-4], [2e-4, 1e-3, 3e-4]), tol) == pytest.approx(2.5)
+    # 5e-5 is below 0.1 tol: its ratio of 50 is left out
+    assert indicator_scale(calibration([5e-5, 2e-3], [1e-6, 1e-3]), tol) == pytest.approx(2.0)
+    assert indicator_scale(calibration([5e-4, 2e-3], [1e-3, 4e-3]), tol) == 1.0  # already above the error
+    assert indicator_scale(calibration([1e-5], [1e-9]), tol) == 1.0  # nothing to calibrate on
+    assert indicator_scale(calibration([5e-4], [0.0]), tol) > 1e100  # an indicator blind to an error
+
+
+def test_training_calibrates_the_indicator_and_the_twin_applies_it(cfg, rom, tmp_path):
+    """The coarse ROM's scale comes from its own calibration sample (6 commands, ``train``'s default of
+    as many as validated), is saved with it, and multiplies the indicator of every reduced answer."""
+    assert rom.validation["calibration_commands"] == 6
+    assert rom.indicator_scale >= 1.0 and rom.validation["indicator_scale"] == rom.indicator_scale
+    raw = dataclasses.replace(rom, indicator_scale=1.0)
+    d, v = [0.003, 0.006, 0.002], [0.0, 1800.0, 900.0]
+    scaled, plain = ReducedTwin(cfg, rom).solve(d, v), ReducedTwin(cfg, raw).solve(d, v)
+    assert scaled.fallback == plain.fallback == ""
+    assert scaled.error_indicator == pytest.approx(rom.indicator_scale * plain.error_indicator, rel=1e-12)
+    np.testing.assert_allclose(scaled.force, plain.force, rtol=0, atol=0)  # the answer itself is the same
+    doubled = load_rom(save_rom(dataclasses.replace(rom, indicator_scale=2.0), tmp_path / "doubled"), cfg)
+    assert doubled.indicator_scale == 2.0
+    arrays = dict(np.load(save_rom(rom, tmp_path / "old")))
+    del arrays["indicator_scale"]  # a file written before the calibration: the raw indicator
+    assert ReducedModel.from_arrays(arrays).indicator_scale == 1.0
 
 
 def over_tolerance(rom, force=0.0056, capacitance=0.0031, over=43, unflagged=25):
