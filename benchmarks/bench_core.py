@@ -31,7 +31,8 @@ command stream (a 1 Hz sine on each unit, sent at 500 Hz), stability checks at t
 default period, the node's ``realtime_priority`` at ``--realtime-priority`` (0: normal
 scheduling); the share of ticks it publishes outputs for (goal >= 99 %), the CPU the node
 process used (cores) and its diagnostics; with ``--before DIR`` alternating with the code in
-DIR, a fresh node process per round.
+DIR, a fresh node process per round; before and after the rounds, the machine's floor
+(``tick_floor.py``: a bare Python thread ticking at the same rate and scheduling).
 
 Not a test: numbers for the notes.  The load (``os.getloadavg``) is printed with them.
 """
@@ -351,12 +352,15 @@ def measure_node(seconds: float, priority: int = 0) -> dict:
 
 def main_node(args) -> None:
     """The node benchmark, --rounds fresh node processes per version, alternating with --before."""
+    from tick_floor import describe, floor
+
     here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # this checkout, not the install
     versions = [("after", here)] + ([("before", os.path.abspath(args.before))] if args.before else [])
     print(f"node: update_rate {NODE_RATE:g} Hz, commands at {NODE_RATE:g} Hz from another process: unit k at "
           f"5 + 4 sin(2 pi t + 2 pi k / 3) mm, stability_check_period 1 s (default), "
           f"realtime_priority {args.realtime_priority}; {args.node:g} s measured "
           f"after 2 s; {args.rounds} round(s) per version; {_load()} at start")
+    print(describe(NODE_RATE, floor(NODE_RATE, args.node, args.realtime_priority), args.realtime_priority))
     print(f"{'round':>5s} {'version':>7s} {'ticks held':>10s} {'outputs/s':>9s} {'node CPU':>8s} "
           f"{'solve p50 ms':>12s} {'its':>4s} {'updates':>7s} {'skipped':>7s} {'bg tangents':>11s} {'load':>5s}")
     held: dict[str, list[float]] = {name: [] for name, _ in versions}
@@ -374,6 +378,8 @@ def main_node(args) -> None:
     for name, values in held.items():
         print(f"{name}: ticks held, median of {len(values)}: {statistics.median(values):.1f} % (goal >= 99 %)")
     print(f"node CPU: cores the node process used (executor, solver and tangent threads); {_load()} at the end")
+    print(describe(NODE_RATE, floor(NODE_RATE, args.node, args.realtime_priority), args.realtime_priority)
+          + " (after)")
 
 
 def main() -> None:

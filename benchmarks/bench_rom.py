@@ -23,7 +23,8 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
 ``--node SECONDS``: instead, the twin node (its own process) with ``model: rom`` and the
 ROM of ``--rom`` at ``update_rate: 1000``, commands at 1 kHz (unit k at 7.5 + 5 sin(2 pi t
 + 2 pi k / n) mm, 1000 V on every unit), the FE check at ``--fe-check-rate``, the node's
-``realtime_priority`` at ``--realtime-priority`` (0: normal scheduling); reports
+``realtime_priority`` at ``--realtime-priority`` (0: normal scheduling), with the machine's
+floor before and after it (``tick_floor.py``: a bare thread at the same rate); reports
 the force messages per tick (every tick publishes), the node's diagnostics and the CPU the node process
 and this one used.
 Targets (issue 15): 1x3 <= 0.1 % force and capacitance error, <= 0.1 ms per update,
@@ -164,6 +165,7 @@ def main_node(rom_file: str, seconds: float, check_rate: float, priority: int = 
     import math
 
     from bench_core import _cpu_seconds
+    from tick_floor import describe, floor
 
     from dea_array_twin.ros.testing import TwinHarness
 
@@ -173,6 +175,7 @@ def main_node(rom_file: str, seconds: float, check_rate: float, priority: int = 
     print(f"node: model rom ({rom_file}), update_rate {rate:g} Hz, fe_check_rate {check_rate:g} Hz, realtime_priority "
           f"{priority}, commands at "
           f"{rate:g} Hz; {seconds:g} s measured after 3 s; {load()} at start")
+    print("  " + describe(rate, floor(rate, seconds, priority), priority))
     if priority > 0:  # the controller's side real-time too, as on a real-time rig
         from dea_array_twin.ros.realtime import use_fifo
 
@@ -205,6 +208,7 @@ def main_node(rom_file: str, seconds: float, check_rate: float, priority: int = 
     print(f"  CPU: the node process {node_cpu:.2f} of a core, this process (sending the commands, receiving the "
           f"outputs) {sender_cpu:.2f}")
     print("  last diagnostics: " + ", ".join(f"{k} {values.get(k)}" for k in keys))
+    print("  " + describe(rate, floor(rate, seconds, priority), priority) + " (after)")
 
 
 def main() -> None:
