@@ -2,10 +2,9 @@
 
 The same equations as the numpy reference in :mod:`.assembly` (which the tests compare
 these against to 1e-12 relative), written as loops that keep every intermediate in
-registers or small buffers instead of arrays of shape ``(ne, nq, ...)``: the tangent
-one element at a time, the residual (the warm update's hot path, two calls per update)
-on blocks of elements, their loops running over the block so that the compiler
-vectorises them.  With ``F = [F1 F2]`` (3x2), ``g = dPsi/dc``, ``H = d2Psi/dc2``
+registers or small buffers instead of arrays of shape ``(ne, nq, ...)``, on blocks of
+elements whose loops run over the block's elements so that the compiler vectorises
+them (the gradients stored elements-last).  With ``F = [F1 F2]`` (3x2), ``g = dPsi/dc``, ``H = d2Psi/dc2``
 (:mod:`.material`) and the reference gradients ``dN_a = (dN_a1, dN_a2)``:
 
     r_a  = t0 sum_q w_q  F S dN_a,            S = [[2 g0, g2], [g2, 2 g1]],
@@ -33,37 +32,71 @@ from .material import Yeoh
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
-@numba.njit(inline="always", **_JIT)
-def _point(xe, dn, k, c10, c20, c30, f, c_out, g_out):
-    """Kinematics and stress at one point: fills ``f`` (3x2), returns ``(det C, Y', Y'')``.
+#: Elements per block: the loops of the residual and the tangent at a quadrature point run over
+#: a block's elements, which the compiler turns into vector instructions (one lane each).
+_LANES = 64
 
-    Also writes ``c = (F1.F1, F2.F2, F1.F2)`` and ``g = Y' dI - k dJ2`` (with
-    ``I = tr C + 1/det C``, :func:`.material.energy_gradient`) into ``c_out``, ``g_out``.
+
+@numba.njit(inline="always", **_JIT)
+def _gather(x, elements, e0, nb, xb):
+    """``xb[n, i, j]``: coordinate ``i`` of node ``n`` of element ``e0 + j`` (``j < nb``)."""
+    for n in range(elements.shape[1]):
+        for j in range(nb):
+            base = 3 * elements[e0 + j, n]
+            for i in range(3):
+                xb[n, i, j] = x[base + i]
+
+
+@numba.njit(inline="always", **_JIT)
+def _deformation(xb, grad, q, e0, nb, f):
+    """``f[2 i + a, j] = F_ia`` at point ``q`` of element ``e0 + j``: ``sum_n x_ni dN_n/dX_a``."""
+    f[:, :nb] = 0.0
+    for n in range(grad.shape[0]):
+        for j in range(nb):
+            d0, d1 = grad[n, 0, q, e0 + j], grad[n, 1, q, e0 + j]
+            for i in range(3):
+                f[2 * i, j] += xb[n, i, j] * d0
+                f[2 * i + 1, j] += xb[n, i, j] * d1
+
+
+@numba.njit(inline="always", **_JIT)
+def _stress(f, j, c10, c20, c30, k):
+    """``(c0, c1, c2, det C, Y', Y'', g0, g1, g2)`` of lane ``j`` of ``f``.
+
+    ``c = (F1.F1, F2.F2, F1.F2)`` and ``g = Y' dI - k dJ2`` (with ``I = tr C + 1/det C``,
+    :func:`.material.energy_gradient`).
     """
-    for i in range(3):
-        f0 = 0.0
-        f1 = 0.0
-        for n in range(dn.shape[0]):
-            f0 += xe[n, i] * dn[n, 0]
-            f1 += xe[n, i] * dn[n, 1]
-        f[i, 0] = f0
-        f[i, 1] = f1
-    c0 = f[0, 0] * f[0, 0] + f[1, 0] * f[1, 0] + f[2, 0] * f[2, 0]
-    c1 = f[0, 1] * f[0, 1] + f[1, 1] * f[1, 1] + f[2, 1] * f[2, 1]
-    c2 = f[0, 0] * f[0, 1] + f[1, 0] * f[1, 1] + f[2, 0] * f[2, 1]
+    c0 = f[0, j] * f[0, j] + f[2, j] * f[2, j] + f[4, j] * f[4, j]
+    c1 = f[1, j] * f[1, j] + f[3, j] * f[3, j] + f[5, j] * f[5, j]
+    c2 = f[0, j] * f[1, j] + f[2, j] * f[3, j] + f[4, j] * f[5, j]
     det = c0 * c1 - c2 * c2
     xi = c0 + c1 + 1.0 / det - 3.0
     dy = c10 + xi * (2.0 * c20 + 3.0 * c30 * xi)
     ddy = 2.0 * c20 + 6.0 * c30 * xi
-    a = dy / det**2
-    c_out[0], c_out[1], c_out[2] = c0, c1, c2
-    g_out[0] = dy - (a + k) * c1
-    g_out[1] = dy - (a + k) * c0
-    g_out[2] = 2.0 * (a + k) * c2
-    return det, dy, ddy
+    a = dy / det**2 + k
+    return c0, c1, c2, det, dy, ddy, dy - a * c1, dy - a * c0, 2.0 * a * c2
 
 
-_LANES = 64  # elements per block of the residual: one vector lane each
+@numba.njit(inline="always", **_JIT)
+def _add_forces(grad, q, e0, nb, f, s, rb):
+    """``rb[n, i, j] += (F S dN_n)_i`` at point ``q`` (``s``: ``w S11, w S22, w S12`` per lane)."""
+    for n in range(grad.shape[0]):
+        for j in range(nb):
+            d0, d1 = grad[n, 0, q, e0 + j], grad[n, 1, q, e0 + j]
+            sd0 = s[0, j] * d0 + s[2, j] * d1
+            sd1 = s[2, j] * d0 + s[1, j] * d1
+            for i in range(3):
+                rb[n, i, j] += f[2 * i, j] * sd0 + f[2 * i + 1, j] * sd1
+
+
+@numba.njit(inline="always", **_JIT)
+def _scatter(elements, e0, nb, rb, r):
+    """``r`` += the block's element forces ``rb``."""
+    for n in range(elements.shape[1]):
+        for j in range(nb):
+            base = 3 * elements[e0 + j, n]
+            for i in range(3):
+                r[base + i] += rb[n, i, j]
 
 
 @numba.njit(**_JIT)
@@ -72,10 +105,8 @@ def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
 
     ``grad`` (nen, 2, nq, ne) and ``wt`` (nq, ne) have the elements last
     (:attr:`.assembly.Discretisation.grad_elements_last`): a block of ``_LANES``
-    elements is worked on at once, each quadrature point's loops running over the
-    block's elements, which the compiler turns into vector instructions (1.7x the
-    element-at-a-time loop on this machine's AVX-512).  Same operations per element in
-    the same order as :func:`_point`, so the same result to round-off.
+    elements is worked on at once (1.7x the element-at-a-time loop on this machine's
+    AVX-512), with the operations of each element in the same order.
     """
     nen, _, nq, ne = grad.shape
     r[:] = 0.0
@@ -85,46 +116,19 @@ def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
     s = np.empty((3, _LANES))  # w S11, w S22, w S12
     for e0 in range(0, ne, _LANES):
         nb = min(_LANES, ne - e0)
-        for n in range(nen):
-            for j in range(nb):
-                base = 3 * elements[e0 + j, n]
-                for i in range(3):
-                    xb[n, i, j] = x[base + i]
+        _gather(x, elements, e0, nb, xb)
         rb[:, :, :nb] = 0.0
         for q in range(nq):
-            f[:, :nb] = 0.0
-            for n in range(nen):
-                for j in range(nb):
-                    d0, d1 = grad[n, 0, q, e0 + j], grad[n, 1, q, e0 + j]
-                    for i in range(3):
-                        f[2 * i, j] += xb[n, i, j] * d0
-                        f[2 * i + 1, j] += xb[n, i, j] * d1
+            _deformation(xb, grad, q, e0, nb, f)
             for j in range(nb):
                 e = e0 + j
-                c0 = f[0, j] * f[0, j] + f[2, j] * f[2, j] + f[4, j] * f[4, j]
-                c1 = f[1, j] * f[1, j] + f[3, j] * f[3, j] + f[5, j] * f[5, j]
-                c2 = f[0, j] * f[1, j] + f[2, j] * f[3, j] + f[4, j] * f[5, j]
-                det = c0 * c1 - c2 * c2
-                xi = c0 + c1 + 1.0 / det - 3.0
-                dy = c10 + xi * (2.0 * c20 + 3.0 * c30 * xi)
-                a = dy / det**2 + maxwell[e]
+                c0, c1, c2, _, _, _, g0, g1, g2 = _stress(f, j, c10, c20, c30, maxwell[e])
                 c[e, q, 0], c[e, q, 1], c[e, q, 2] = c0, c1, c2
-                g0, g1, g2 = dy - a * c1, dy - a * c0, 2.0 * a * c2
                 g[e, q, 0], g[e, q, 1], g[e, q, 2] = g0, g1, g2
                 w = wt[q, e]
                 s[0, j], s[1, j], s[2, j] = 2.0 * g0 * w, 2.0 * g1 * w, g2 * w
-            for n in range(nen):
-                for j in range(nb):
-                    d0, d1 = grad[n, 0, q, e0 + j], grad[n, 1, q, e0 + j]
-                    sd0 = s[0, j] * d0 + s[2, j] * d1
-                    sd1 = s[2, j] * d0 + s[1, j] * d1
-                    for i in range(3):
-                        rb[n, i, j] += f[2 * i, j] * sd0 + f[2 * i + 1, j] * sd1
-        for n in range(nen):
-            for j in range(nb):
-                base = 3 * elements[e0 + j, n]
-                for i in range(3):
-                    r[base + i] += rb[n, i, j]
+            _add_forces(grad, q, e0, nb, f, s, rb)
+        _scatter(elements, e0, nb, rb, r)
 
 
 @numba.njit(inline="always", **_JIT)
@@ -139,97 +143,103 @@ def _add_row(values, at, v0, v1, v2):
 def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, values):
     """Fill ``r``, ``c``, ``g`` and the global tangent nonzeros ``values`` (zeroed here).
 
+    ``grad`` and ``wt`` as in :func:`_residual` (elements last, blocks of ``_LANES``).
     ``position[e, p, b]`` is the index into ``values`` of local dofs ``(p, 3 b)`` of
     element ``e`` (:attr:`.SparsePattern.element_block_positions`); the three columns of
     node ``b`` follow it.  First, per quadrature point, ``F``, ``S`` and ``H T_b`` of every
-    node; then each upper node block ``K_ab`` is summed over the points in nine scalars
-    (registers) and added straight to ``values``, with its mirror ``K_ba = K_ab^T``.
+    node of the block's elements; then each upper node block ``K_ab`` is summed over the
+    points (nine sums and the geometric term per element of the block) and added to
+    ``values``, with its mirror ``K_ba = K_ab^T``.
     """
-    ne, nq, nen, _ = grad.shape
+    nen, _, nq, ne = grad.shape
     r[:] = 0.0
     values[:] = 0.0
-    xe = np.empty((nen, 3))
-    f = np.empty((3, 2))
-    fq = np.empty((nq, 3, 2))  # F at each point
-    sq = np.empty((nq, 3))  # w S: (s00, s11, s01)
-    ht = np.empty((nq, nen, 3, 2))  # w H T_b at each point
-    for e in range(ne):
-        for n in range(nen):
-            for i in range(3):
-                xe[n, i] = x[3 * elements[e, n] + i]
-        k = maxwell[e]
+    xb = np.empty((nen, 3, _LANES))
+    rb = np.empty((nen, 3, _LANES))
+    fq = np.empty((nq, 6, _LANES))  # F at each point
+    sq = np.empty((nq, 3, _LANES))  # w S: (s00, s11, s01)
+    ht = np.empty((nq, nen, 6, _LANES))  # w H T_b: (0, 0) (1, 0) (2, 0) (0, 1) (1, 1) (2, 1)
+    kb = np.empty((10, _LANES))  # K_ab's nine entries and its geometric term, per element
+    for e0 in range(0, ne, _LANES):
+        nb = min(_LANES, ne - e0)
+        _gather(x, elements, e0, nb, xb)
+        rb[:, :, :nb] = 0.0
         for q in range(nq):
-            dn = grad[e, q]
-            det, dy, ddy = _point(xe, dn, k, c10, c20, c30, f, c[e, q], g[e, q])
-            w = wt[e, q]
-            c0, c1, c2 = c[e, q, 0], c[e, q, 1], c[e, q, 2]
-            # H = Y'' dI dI^T + Y' 2 det^-3 dJ dJ^T - (Y' det^-2 + k) d2J  (material.energy_derivatives)
-            inv2 = 1.0 / det**2
-            dj0, dj1, dj2 = c1, c0, -2.0 * c2
-            di0, di1, di2 = 1.0 - inv2 * dj0, 1.0 - inv2 * dj1, -inv2 * dj2
-            b = 2.0 * dy * inv2 / det
-            m = dy * inv2 + k
-            h00 = ddy * di0 * di0 + b * dj0 * dj0
-            h11 = ddy * di1 * di1 + b * dj1 * dj1
-            h22 = ddy * di2 * di2 + b * dj2 * dj2 + 2.0 * m
-            h01 = ddy * di0 * di1 + b * dj0 * dj1 - m
-            h02 = ddy * di0 * di2 + b * dj0 * dj2
-            h12 = ddy * di1 * di2 + b * dj1 * dj2
-            s00, s11, s01 = 2.0 * g[e, q, 0] * w, 2.0 * g[e, q, 1] * w, g[e, q, 2] * w
-            sq[q, 0], sq[q, 1], sq[q, 2] = s00, s11, s01
-            for i in range(3):
-                fq[q, i, 0], fq[q, i, 1] = f[i, 0], f[i, 1]
-            for n in range(nen):
-                a1, a2 = 2.0 * w * dn[n, 0], w * dn[n, 1]  # alpha_n = (2 dN1, 0, dN2), times w
-                b1, b2 = 2.0 * w * dn[n, 1], w * dn[n, 0]  # beta_n  = (0, 2 dN2, dN1), times w
-                ht[q, n, 0, 0] = h00 * a1 + h02 * a2
-                ht[q, n, 1, 0] = h01 * a1 + h12 * a2
-                ht[q, n, 2, 0] = h02 * a1 + h22 * a2
-                ht[q, n, 0, 1] = h01 * b1 + h02 * b2
-                ht[q, n, 1, 1] = h11 * b1 + h12 * b2
-                ht[q, n, 2, 1] = h12 * b1 + h22 * b2
-                sd0 = s00 * dn[n, 0] + s01 * dn[n, 1]
-                sd1 = s01 * dn[n, 0] + s11 * dn[n, 1]
-                base = 3 * elements[e, n]
-                for i in range(3):
-                    r[base + i] += f[i, 0] * sd0 + f[i, 1] * sd1
+            f, sw = fq[q], sq[q]
+            _deformation(xb, grad, q, e0, nb, f)
+            for j in range(nb):
+                e = e0 + j
+                k = maxwell[e]
+                c0, c1, c2, det, dy, ddy, g0, g1, g2 = _stress(f, j, c10, c20, c30, k)
+                c[e, q, 0], c[e, q, 1], c[e, q, 2] = c0, c1, c2
+                g[e, q, 0], g[e, q, 1], g[e, q, 2] = g0, g1, g2
+                w = wt[q, e]
+                # H = Y'' dI dI^T + Y' 2 det^-3 dJ dJ^T - (Y' det^-2 + k) d2J  (material.energy_derivatives)
+                inv2 = 1.0 / det**2
+                dj0, dj1, dj2 = c1, c0, -2.0 * c2
+                di0, di1, di2 = 1.0 - inv2 * dj0, 1.0 - inv2 * dj1, -inv2 * dj2
+                b = 2.0 * dy * inv2 / det
+                m = dy * inv2 + k
+                h00 = ddy * di0 * di0 + b * dj0 * dj0
+                h11 = ddy * di1 * di1 + b * dj1 * dj1
+                h22 = ddy * di2 * di2 + b * dj2 * dj2 + 2.0 * m
+                h01 = ddy * di0 * di1 + b * dj0 * dj1 - m
+                h02 = ddy * di0 * di2 + b * dj0 * dj2
+                h12 = ddy * di1 * di2 + b * dj1 * dj2
+                sw[0, j], sw[1, j], sw[2, j] = 2.0 * g0 * w, 2.0 * g1 * w, g2 * w
+                for n in range(nen):
+                    dn0, dn1 = grad[n, 0, q, e], grad[n, 1, q, e]
+                    a1, a2 = 2.0 * w * dn0, w * dn1  # alpha_n = (2 dN1, 0, dN2), times w
+                    b1, b2 = 2.0 * w * dn1, w * dn0  # beta_n  = (0, 2 dN2, dN1), times w
+                    ht[q, n, 0, j] = h00 * a1 + h02 * a2
+                    ht[q, n, 1, j] = h01 * a1 + h12 * a2
+                    ht[q, n, 2, j] = h02 * a1 + h22 * a2
+                    ht[q, n, 3, j] = h01 * b1 + h02 * b2
+                    ht[q, n, 4, j] = h11 * b1 + h12 * b2
+                    ht[q, n, 5, j] = h12 * b1 + h22 * b2
+            _add_forces(grad, q, e0, nb, f, sw, rb)
+        _scatter(elements, e0, nb, rb, r)
         for na in range(nen):
-            for nb in range(na, nen):
-                k00 = k01 = k02 = k10 = k11 = k12 = k20 = k21 = k22 = geo = 0.0
+            for nb_ in range(na, nen):
+                kb[:, :nb] = 0.0
                 for q in range(nq):
-                    dn = grad[e, q]
-                    da0, da1, db0, db1 = dn[na, 0], dn[na, 1], dn[nb, 0], dn[nb, 1]
-                    hb = ht[q, nb]
-                    m00 = 2.0 * da0 * hb[0, 0] + da1 * hb[2, 0]
-                    m01 = 2.0 * da0 * hb[0, 1] + da1 * hb[2, 1]
-                    m10 = 2.0 * da1 * hb[1, 0] + da0 * hb[2, 0]
-                    m11 = 2.0 * da1 * hb[1, 1] + da0 * hb[2, 1]
-                    s00, s11, s01 = sq[q, 0], sq[q, 1], sq[q, 2]
-                    geo += (s00 * da0 + s01 * da1) * db0 + (s01 * da0 + s11 * da1) * db1
-                    fx = fq[q]
-                    f00, f01, f10, f11, f20, f21 = fx[0, 0], fx[0, 1], fx[1, 0], fx[1, 1], fx[2, 0], fx[2, 1]
-                    u00, u10 = m00 * f00 + m01 * f01, m10 * f00 + m11 * f01  # M F^T, column j = 0
-                    u01, u11 = m00 * f10 + m01 * f11, m10 * f10 + m11 * f11
-                    u02, u12 = m00 * f20 + m01 * f21, m10 * f20 + m11 * f21
-                    k00 += f00 * u00 + f01 * u10
-                    k01 += f00 * u01 + f01 * u11
-                    k02 += f00 * u02 + f01 * u12
-                    k10 += f10 * u00 + f11 * u10
-                    k11 += f10 * u01 + f11 * u11
-                    k12 += f10 * u02 + f11 * u12
-                    k20 += f20 * u00 + f21 * u10
-                    k21 += f20 * u01 + f21 * u11
-                    k22 += f20 * u02 + f21 * u12
-                k00 += geo
-                k11 += geo
-                k22 += geo
-                _add_row(values, position[e, 3 * na, nb], k00, k01, k02)
-                _add_row(values, position[e, 3 * na + 1, nb], k10, k11, k12)
-                _add_row(values, position[e, 3 * na + 2, nb], k20, k21, k22)
-                if nb != na:  # the mirror block K_ba = K_ab^T
-                    _add_row(values, position[e, 3 * nb, na], k00, k10, k20)
-                    _add_row(values, position[e, 3 * nb + 1, na], k01, k11, k21)
-                    _add_row(values, position[e, 3 * nb + 2, na], k02, k12, k22)
+                    f, sw, hb = fq[q], sq[q], ht[q, nb_]
+                    for j in range(nb):
+                        e = e0 + j
+                        da0, da1 = grad[na, 0, q, e], grad[na, 1, q, e]
+                        db0, db1 = grad[nb_, 0, q, e], grad[nb_, 1, q, e]
+                        m00 = 2.0 * da0 * hb[0, j] + da1 * hb[2, j]
+                        m01 = 2.0 * da0 * hb[3, j] + da1 * hb[5, j]
+                        m10 = 2.0 * da1 * hb[1, j] + da0 * hb[2, j]
+                        m11 = 2.0 * da1 * hb[4, j] + da0 * hb[5, j]
+                        s00, s11, s01 = sw[0, j], sw[1, j], sw[2, j]
+                        kb[9, j] += (s00 * da0 + s01 * da1) * db0 + (s01 * da0 + s11 * da1) * db1
+                        f00, f01, f10, f11, f20, f21 = f[0, j], f[1, j], f[2, j], f[3, j], f[4, j], f[5, j]
+                        u00, u10 = m00 * f00 + m01 * f01, m10 * f00 + m11 * f01  # M F^T, column j = 0
+                        u01, u11 = m00 * f10 + m01 * f11, m10 * f10 + m11 * f11
+                        u02, u12 = m00 * f20 + m01 * f21, m10 * f20 + m11 * f21
+                        kb[0, j] += f00 * u00 + f01 * u10
+                        kb[1, j] += f00 * u01 + f01 * u11
+                        kb[2, j] += f00 * u02 + f01 * u12
+                        kb[3, j] += f10 * u00 + f11 * u10
+                        kb[4, j] += f10 * u01 + f11 * u11
+                        kb[5, j] += f10 * u02 + f11 * u12
+                        kb[6, j] += f20 * u00 + f21 * u10
+                        kb[7, j] += f20 * u01 + f21 * u11
+                        kb[8, j] += f20 * u02 + f21 * u12
+                for j in range(nb):
+                    e = e0 + j
+                    geo = kb[9, j]
+                    k00, k01, k02 = kb[0, j] + geo, kb[1, j], kb[2, j]
+                    k10, k11, k12 = kb[3, j], kb[4, j] + geo, kb[5, j]
+                    k20, k21, k22 = kb[6, j], kb[7, j], kb[8, j] + geo
+                    _add_row(values, position[e, 3 * na, nb_], k00, k01, k02)
+                    _add_row(values, position[e, 3 * na + 1, nb_], k10, k11, k12)
+                    _add_row(values, position[e, 3 * na + 2, nb_], k20, k21, k22)
+                    if nb_ != na:  # the mirror block K_ba = K_ab^T
+                        _add_row(values, position[e, 3 * nb_, na], k00, k10, k20)
+                        _add_row(values, position[e, 3 * nb_ + 1, na], k01, k11, k21)
+                        _add_row(values, position[e, 3 * nb_ + 2, na], k02, k12, k22)
 
 
 @numba.njit(**_JIT)
@@ -332,6 +342,7 @@ def tangent_values(disc: Discretisation, pattern: SparsePattern, x: np.ndarray, 
     r = np.empty(disc.n_dofs)
     c, g = np.empty((ne, nq, 3)), np.empty((ne, nq, 3))
     values = np.empty(pattern.rows.size)
-    _tangent(x, disc.mesh.elements, disc.grad, thickness * disc.weight, maxwell,
-             yeoh.c10, yeoh.c20, yeoh.c30, pattern.element_block_positions, r, c, g, values)
+    grad, weight = disc.grad_elements_last
+    _tangent(x, disc.mesh.elements, grad, thickness * weight, maxwell, yeoh.c10, yeoh.c20, yeoh.c30,
+             pattern.element_block_positions, r, c, g, values)
     return r, values
