@@ -95,14 +95,15 @@ def test_installed_twin_node_starts_and_stops_on_sigint(tmp_path):
         proc = subprocess.Popen([str(PREFIX / 'lib' / PACKAGE / 'twin_node'), '--ros-args', '-p',
                                  'update_rate:=20.0'], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
                                 stderr=subprocess.STDOUT, text=True)
-        try:
-            output = OutputLines(proc.stdout)
-            ready = output.wait_for(lambda lines: any('ready' in line for line in lines), timeout=60)
-            assert ready, f'twin_node not ready within 60 s (exit code {proc.poll()}): {output.lines}'
-            proc.send_signal(signal.SIGINT)
-            code = proc.wait(timeout=20)
-            output.wait_for(lambda lines: False, timeout=1.0)  # the last lines the pipe still holds
-            assert code == 0, f'exit code {code} after SIGINT: {output.lines}'
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+        with proc:  # closes the pipe when done
+            try:
+                output = OutputLines(proc.stdout)
+                ready = output.wait_for(lambda lines: any('ready' in line for line in lines), timeout=60)
+                assert ready, f'twin_node not ready within 60 s (exit code {proc.poll()}): {output.lines}'
+                proc.send_signal(signal.SIGINT)
+                code = proc.wait(timeout=20)
+                output.wait_for(lambda lines: False, timeout=1.0)  # the last lines the pipe still holds
+                assert code == 0, f'exit code {code} after SIGINT: {output.lines}'
+            finally:
+                if proc.poll() is None:
+                    proc.kill()

@@ -230,6 +230,8 @@ class TwinHarness:
                     self.process.kill()
                     self.process.wait()
             reader.join(timeout=5.0)
+            if not reader.is_alive():  # read to the end: the pipe can go (a reader still in it keeps it)
+                self.process.stdout.close()
 
         self._stack.callback(stop)
 

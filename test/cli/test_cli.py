@@ -113,16 +113,17 @@ def test_demo_runs_the_twin_with_the_wave_controller():
                    PYTHONUNBUFFERED="1")
         proc = subprocess.Popen([sys.executable, "-m", "dea_array_twin.cli", "demo", "--duration", "0"], env=env,
                                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        try:
-            output = OutputLines(proc.stdout)
-            done = output.wait_for(unit_2_up_after_unit_1, timeout=90)
-            proc.send_signal(signal.SIGINT)
-            code = proc.wait(timeout=30)
-            output.wait_for(lambda lines: False, timeout=1.0)  # the last lines the pipe still holds
-            assert code == 0, f"exit code {code} after SIGINT: {output.lines[-40:]}"
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+        with proc:  # closes the pipe when done
+            try:
+                output = OutputLines(proc.stdout)
+                done = output.wait_for(unit_2_up_after_unit_1, timeout=90)
+                proc.send_signal(signal.SIGINT)
+                code = proc.wait(timeout=30)
+                output.wait_for(lambda lines: False, timeout=1.0)  # the last lines the pipe still holds
+                assert code == 0, f"exit code {code} after SIGINT: {output.lines[-40:]}"
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
     assert done, "".join(output.lines[-40:])
     d = deflections(output.lines)
     first_up = [int(np.argmax(d[:, k] > 5.0)) for k in (0, 1)]

@@ -32,7 +32,7 @@ def test_design_bias_writes_a_config_that_stroke_solves_to_the_csv_stroke(tmp_pa
     assert sorted(p.name for p in out.iterdir()) == ["design.yaml", "strokes.csv", "summary.md", "unit_1.png"]
     cfg = load_config(out / "design.yaml")
     assert cfg.modes == ("biased",) and cfg.per_unit("bias")[0].kind == "linear"
-    rows = list(csv.DictReader(open(out / "strokes.csv")))
+    rows = list(csv.DictReader((out / "strokes.csv").read_text().splitlines()))
     assert [(r["design"], r["unit"], r["scenario"]) for r in rows] == [("single-alone", "1", "s"),
                                                                          ("single", "1", "s"), ("aware", "1", "s")]
     aware = rows[2]
@@ -68,7 +68,8 @@ def test_lbs_plus_nbs_on_a_steep_dome_snaps_in_the_full_solves_exit_1_without_al
     allowed = capsys.readouterr().out
     assert "snap-through allowed" in allowed and "snap through where the inner model saw no snap" not in allowed
     assert "does not return to its low state" in allowed  # the dome is bistable: once snapped up it stays
-    aware = [r for r in csv.DictReader(open(tmp_path / "snap" / "strokes.csv")) if r["design"] == "aware"]
+    rows = csv.DictReader((tmp_path / "snap" / "strokes.csv").read_text().splitlines())
+    aware = [r for r in rows if r["design"] == "aware"]
     assert len(aware) == 1 and aware[0]["snapped"] == "True" and aware[0]["stable"] == "True"
     text = (tmp_path / "snap" / "design.yaml").read_text()
     start = float(text.split("--start ")[1].split()[0])

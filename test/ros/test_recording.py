@@ -1,6 +1,8 @@
 """The node's MCAP recording: readable by mcap_ros2 and rosbags, keeps every message, survives SIGKILL,
 is finalised on SIGINT, SIGTERM and SIGHUP, never stops the twin."""
 
+import csv
+import io
 import os
 import signal
 import threading
@@ -23,6 +25,10 @@ from dea_array_twin.ros.recorder import CONFIG_RECORD
 from dea_array_twin.ros.testing import TwinHarness
 
 FREE_CENTRE = ["free", "driven", "free"]
+
+
+def _csv_rows(path: Path) -> list[dict]:
+    return list(csv.DictReader(path.read_text().splitlines()))
 
 
 def _only_file(directory: Path) -> Path:
@@ -250,7 +256,6 @@ def test_recording_splits_by_size(tmp_path):
 
 def test_replaying_the_twins_own_recording_reproduces_its_outputs(tmp_path, capsys):
     """Record a live run at 50 Hz, replay it offline with the stored config: FIT > 99.9%."""
-    import csv
 
     params = {"update_rate": 50.0, "record": True, "record_dir": str(tmp_path), "unit_modes": FREE_CENTRE,
               "marker_rate": 0.0}
@@ -271,12 +276,12 @@ def test_replaying_the_twins_own_recording_reproduces_its_outputs(tmp_path, caps
     positions = [line.split() for line in out.out.splitlines() if line.split()[:1] == ["2"] and len(line.split()) == 2]
     assert len(positions) == 1 and float(positions[0][1]) > 99.9, out.out  # unit_states positions too
     # every recorded output is one of the replayed states (to solver tolerance)
-    replayed = np.array([[float(r[f"F{k}_N"]) for k in (1, 2, 3)] for r in csv.DictReader(open(tmp_path / "re.csv"))])
+    replayed = np.array([[float(r[f"F{k}_N"]) for k in (1, 2, 3)] for r in _csv_rows(tmp_path / "re.csv")])
     replayed = np.vstack([np.zeros(3), replayed])
     recorded = [list(m.ros_msg.data) for m in read_ros2_messages(str(path)) if m.channel.topic == "/force"]
     for f in recorded:
         assert np.abs(replayed - f).max(axis=1).min() < 1e-6 * 0.1
-    rows = list(csv.DictReader(open(tmp_path / "re.csv")))
+    rows = _csv_rows(tmp_path / "re.csv")
     assert float(rows[-1]["V2_V"]) == 1500.0 and float(rows[-1]["F2_N"]) > 0
 
 
@@ -308,5 +313,6 @@ def test_the_solver_thread_starts_only_once_the_recorder_is_connected_to_the_out
         seen = len(h.messages("/diagnostics"))  # and a 1 Hz diagnostics later the recorder has written it
         h.wait_for("/diagnostics", lambda m: any(kv.key == "recorder_written" and int(kv.value) >= 3
                                                  for kv in m.status[0].values), after=seen + 1, timeout=20)
-    topics = Counter(channel.topic for _, channel, _ in make_reader(open(_only_file(tmp_path), "rb")).iter_messages())
+    bag = io.BytesIO(_only_file(tmp_path).read_bytes())
+    topics = Counter(channel.topic for _, channel, _ in make_reader(bag).iter_messages())
     assert topics["/force"] >= 1 and topics["/unit_states"] >= 1
