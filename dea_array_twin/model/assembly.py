@@ -26,6 +26,10 @@ from .elements import triangle
 from .material import Yeoh, energy_density, energy_derivatives, energy_gradient
 from .mesh import Mesh
 
+#: Elements per block of the compiled kernels' layout (:attr:`Discretisation.grad_blocks`): one
+#: vector lane each.
+LANES = 64
+
 
 @dataclass(frozen=True)
 class Discretisation:
@@ -53,14 +57,21 @@ class Discretisation:
         return 3 * self.mesh.n_nodes
 
     @functools.cached_property
-    def grad_elements_last(self) -> tuple[np.ndarray, np.ndarray]:
-        """``grad`` as (nen, 2, nq, ne) and ``weight`` as (nq, ne), contiguous.
+    def grad_blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """``grad`` as (n_blocks, nen, 2, nq, LANES) and ``weight`` as (n_blocks, nq, LANES).
 
-        The layout of the compiled residual (:mod:`.kernels`), which reads a block of
-        consecutive elements at each quadrature point.
+        Blocks of :data:`LANES` consecutive elements, the last one padded with zeros: the
+        layout of the compiled residual and tangent (:mod:`.kernels`), which work on a
+        block at a time with its elements in the vector lanes and read its gradients as
+        one contiguous run.
         """
-        return (np.ascontiguousarray(self.grad.transpose(2, 3, 1, 0)),
-                np.ascontiguousarray(self.weight.T))
+        ne, nq, nen, _ = self.grad.shape
+        blocks = -(-ne // LANES)
+        grad = np.zeros((blocks * LANES, nq, nen, 2))
+        weight = np.zeros((blocks * LANES, nq))
+        grad[:ne], weight[:ne] = self.grad, self.weight
+        return (np.ascontiguousarray(grad.reshape(blocks, LANES, nq, nen, 2).transpose(0, 3, 4, 2, 1)),
+                np.ascontiguousarray(weight.reshape(blocks, LANES, nq).transpose(0, 2, 1)))
 
     @functools.cached_property
     def _grad_by_node(self) -> np.ndarray:

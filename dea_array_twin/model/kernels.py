@@ -26,15 +26,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .assembly import Discretisation, PointState, SparsePattern
+from .assembly import LANES, Discretisation, PointState, SparsePattern
 from .material import Yeoh
 
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
-
-
-#: Elements per block: the loops of the residual and the tangent at a quadrature point run over
-#: a block's elements, which the compiler turns into vector instructions (one lane each).
-_LANES = 64
 
 
 @numba.njit(inline="always", **_JIT)
@@ -48,12 +43,12 @@ def _gather(x, elements, e0, nb, xb):
 
 
 @numba.njit(inline="always", **_JIT)
-def _deformation(xb, grad, q, e0, nb, f):
-    """``f[2 i + a, j] = F_ia`` at point ``q`` of element ``e0 + j``: ``sum_n x_ni dN_n/dX_a``."""
+def _deformation(xb, gb, q, nb, f):
+    """``f[2 i + a, j] = F_ia`` at point ``q`` of lane ``j``: ``sum_n x_ni dN_n/dX_a`` (``gb``: the block)."""
     f[:, :nb] = 0.0
-    for n in range(grad.shape[0]):
+    for n in range(gb.shape[0]):
         for j in range(nb):
-            d0, d1 = grad[n, 0, q, e0 + j], grad[n, 1, q, e0 + j]
+            d0, d1 = gb[n, 0, q, j], gb[n, 1, q, j]
             for i in range(3):
                 f[2 * i, j] += xb[n, i, j] * d0
                 f[2 * i + 1, j] += xb[n, i, j] * d1
@@ -78,11 +73,11 @@ def _stress(f, j, c10, c20, c30, k):
 
 
 @numba.njit(inline="always", **_JIT)
-def _add_forces(grad, q, e0, nb, f, s, rb):
+def _add_forces(gb, q, nb, f, s, rb):
     """``rb[n, i, j] += (F S dN_n)_i`` at point ``q`` (``s``: ``w S11, w S22, w S12`` per lane)."""
-    for n in range(grad.shape[0]):
+    for n in range(gb.shape[0]):
         for j in range(nb):
-            d0, d1 = grad[n, 0, q, e0 + j], grad[n, 1, q, e0 + j]
+            d0, d1 = gb[n, 0, q, j], gb[n, 1, q, j]
             sd0 = s[0, j] * d0 + s[2, j] * d1
             sd1 = s[2, j] * d0 + s[1, j] * d1
             for i in range(3):
@@ -103,31 +98,33 @@ def _scatter(elements, e0, nb, rb, r):
 def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
     """Fill ``r`` (zeroed here), ``c`` and ``g`` (shape (ne, nq, 3)) of positions ``x``.
 
-    ``grad`` (nen, 2, nq, ne) and ``wt`` (nq, ne) have the elements last
-    (:attr:`.assembly.Discretisation.grad_elements_last`): a block of ``_LANES``
-    elements is worked on at once (1.7x the element-at-a-time loop on this machine's
-    AVX-512), with the operations of each element in the same order.
+    ``grad`` (n_blocks, nen, 2, nq, LANES) and ``wt`` (n_blocks, nq, LANES) are stored by
+    blocks of ``LANES`` elements (:attr:`.assembly.Discretisation.grad_blocks`): a block is
+    worked on at once, its loops running over the block's elements (1.7x the
+    element-at-a-time loop on this machine's AVX-512), with the operations of each element in
+    the same order; each block's gradients are one contiguous read.
     """
-    nen, _, nq, ne = grad.shape
+    nen, nq, ne = grad.shape[1], grad.shape[3], elements.shape[0]
     r[:] = 0.0
-    xb = np.empty((nen, 3, _LANES))
-    rb = np.empty((nen, 3, _LANES))
-    f = np.empty((6, _LANES))  # F11 F12 F21 F22 F31 F32 of each element of the block
-    s = np.empty((3, _LANES))  # w S11, w S22, w S12
-    for e0 in range(0, ne, _LANES):
-        nb = min(_LANES, ne - e0)
+    xb = np.empty((nen, 3, LANES))
+    rb = np.empty((nen, 3, LANES))
+    f = np.empty((6, LANES))  # F11 F12 F21 F22 F31 F32 of each element of the block
+    s = np.empty((3, LANES))  # w S11, w S22, w S12
+    for block in range(grad.shape[0]):
+        e0, gb = block * LANES, grad[block]
+        nb = min(LANES, ne - e0)
         _gather(x, elements, e0, nb, xb)
         rb[:, :, :nb] = 0.0
         for q in range(nq):
-            _deformation(xb, grad, q, e0, nb, f)
+            _deformation(xb, gb, q, nb, f)
             for j in range(nb):
                 e = e0 + j
                 c0, c1, c2, _, _, _, g0, g1, g2 = _stress(f, j, c10, c20, c30, maxwell[e])
                 c[e, q, 0], c[e, q, 1], c[e, q, 2] = c0, c1, c2
                 g[e, q, 0], g[e, q, 1], g[e, q, 2] = g0, g1, g2
-                w = wt[q, e]
+                w = wt[block, q, j]
                 s[0, j], s[1, j], s[2, j] = 2.0 * g0 * w, 2.0 * g1 * w, g2 * w
-            _add_forces(grad, q, e0, nb, f, s, rb)
+            _add_forces(gb, q, nb, f, s, rb)
         _scatter(elements, e0, nb, rb, r)
 
 
@@ -143,7 +140,7 @@ def _add_row(values, at, v0, v1, v2):
 def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, values):
     """Fill ``r``, ``c``, ``g`` and the global tangent nonzeros ``values`` (zeroed here).
 
-    ``grad`` and ``wt`` as in :func:`_residual` (elements last, blocks of ``_LANES``).
+    ``grad`` and ``wt`` as in :func:`_residual` (by blocks of ``LANES`` elements).
     ``position[e, p, b]`` is the index into ``values`` of local dofs ``(p, 3 b)`` of
     element ``e`` (:attr:`.SparsePattern.element_block_positions`); the three columns of
     node ``b`` follow it.  First, per quadrature point, ``F``, ``S`` and ``H T_b`` of every
@@ -151,29 +148,30 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
     points (nine sums and the geometric term per element of the block) and added to
     ``values``, with its mirror ``K_ba = K_ab^T``.
     """
-    nen, _, nq, ne = grad.shape
+    nen, nq, ne = grad.shape[1], grad.shape[3], elements.shape[0]
     r[:] = 0.0
     values[:] = 0.0
-    xb = np.empty((nen, 3, _LANES))
-    rb = np.empty((nen, 3, _LANES))
-    fq = np.empty((nq, 6, _LANES))  # F at each point
-    sq = np.empty((nq, 3, _LANES))  # w S: (s00, s11, s01)
-    ht = np.empty((nq, nen, 6, _LANES))  # w H T_b: (0, 0) (1, 0) (2, 0) (0, 1) (1, 1) (2, 1)
-    kb = np.empty((10, _LANES))  # K_ab's nine entries and its geometric term, per element
-    for e0 in range(0, ne, _LANES):
-        nb = min(_LANES, ne - e0)
+    xb = np.empty((nen, 3, LANES))
+    rb = np.empty((nen, 3, LANES))
+    fq = np.empty((nq, 6, LANES))  # F at each point
+    sq = np.empty((nq, 3, LANES))  # w S: (s00, s11, s01)
+    ht = np.empty((nq, nen, 6, LANES))  # w H T_b: (0, 0) (1, 0) (2, 0) (0, 1) (1, 1) (2, 1)
+    kb = np.empty((10, LANES))  # K_ab's nine entries and its geometric term, per element
+    for block in range(grad.shape[0]):
+        e0, gb = block * LANES, grad[block]
+        nb = min(LANES, ne - e0)
         _gather(x, elements, e0, nb, xb)
         rb[:, :, :nb] = 0.0
         for q in range(nq):
             f, sw = fq[q], sq[q]
-            _deformation(xb, grad, q, e0, nb, f)
+            _deformation(xb, gb, q, nb, f)
             for j in range(nb):
                 e = e0 + j
                 k = maxwell[e]
                 c0, c1, c2, det, dy, ddy, g0, g1, g2 = _stress(f, j, c10, c20, c30, k)
                 c[e, q, 0], c[e, q, 1], c[e, q, 2] = c0, c1, c2
                 g[e, q, 0], g[e, q, 1], g[e, q, 2] = g0, g1, g2
-                w = wt[q, e]
+                w = wt[block, q, j]
                 # H = Y'' dI dI^T + Y' 2 det^-3 dJ dJ^T - (Y' det^-2 + k) d2J  (material.energy_derivatives)
                 inv2 = 1.0 / det**2
                 dj0, dj1, dj2 = c1, c0, -2.0 * c2
@@ -188,7 +186,7 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
                 h12 = ddy * di1 * di2 + b * dj1 * dj2
                 sw[0, j], sw[1, j], sw[2, j] = 2.0 * g0 * w, 2.0 * g1 * w, g2 * w
                 for n in range(nen):
-                    dn0, dn1 = grad[n, 0, q, e], grad[n, 1, q, e]
+                    dn0, dn1 = gb[n, 0, q, j], gb[n, 1, q, j]
                     a1, a2 = 2.0 * w * dn0, w * dn1  # alpha_n = (2 dN1, 0, dN2), times w
                     b1, b2 = 2.0 * w * dn1, w * dn0  # beta_n  = (0, 2 dN2, dN1), times w
                     ht[q, n, 0, j] = h00 * a1 + h02 * a2
@@ -197,7 +195,7 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
                     ht[q, n, 3, j] = h01 * b1 + h02 * b2
                     ht[q, n, 4, j] = h11 * b1 + h12 * b2
                     ht[q, n, 5, j] = h12 * b1 + h22 * b2
-            _add_forces(grad, q, e0, nb, f, sw, rb)
+            _add_forces(gb, q, nb, f, sw, rb)
         _scatter(elements, e0, nb, rb, r)
         for na in range(nen):
             for nb_ in range(na, nen):
@@ -205,9 +203,8 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
                 for q in range(nq):
                     f, sw, hb = fq[q], sq[q], ht[q, nb_]
                     for j in range(nb):
-                        e = e0 + j
-                        da0, da1 = grad[na, 0, q, e], grad[na, 1, q, e]
-                        db0, db1 = grad[nb_, 0, q, e], grad[nb_, 1, q, e]
+                        da0, da1 = gb[na, 0, q, j], gb[na, 1, q, j]
+                        db0, db1 = gb[nb_, 0, q, j], gb[nb_, 1, q, j]
                         m00 = 2.0 * da0 * hb[0, j] + da1 * hb[2, j]
                         m01 = 2.0 * da0 * hb[3, j] + da1 * hb[5, j]
                         m10 = 2.0 * da1 * hb[1, j] + da0 * hb[2, j]
@@ -327,7 +324,7 @@ def internal_forces(disc: Discretisation, x: np.ndarray, yeoh: Yeoh, maxwell: np
     ne, nq = disc.weight.shape
     r = np.empty(disc.n_dofs)
     c, g = np.empty((ne, nq, 3)), np.empty((ne, nq, 3))
-    grad, weight = disc.grad_elements_last
+    grad, weight = disc.grad_blocks
     _residual(x, disc.mesh.elements, grad, thickness * weight, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, r, c, g)
     return r, PointState(c, g)
 
@@ -342,7 +339,7 @@ def tangent_values(disc: Discretisation, pattern: SparsePattern, x: np.ndarray, 
     r = np.empty(disc.n_dofs)
     c, g = np.empty((ne, nq, 3)), np.empty((ne, nq, 3))
     values = np.empty(pattern.rows.size)
-    grad, weight = disc.grad_elements_last
+    grad, weight = disc.grad_blocks
     _tangent(x, disc.mesh.elements, grad, thickness * weight, maxwell, yeoh.c10, yeoh.c20, yeoh.c30,
              pattern.element_block_positions, r, c, g, values)
     return r, values
