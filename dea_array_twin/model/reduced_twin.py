@@ -34,8 +34,8 @@ basis,
     delta_o = (H_oq H_qq^-1 H_qw - H_ow) S^-1 g_w,     S = H_ww - H_wq H_qq^-1 H_qw,
 
 and the indicator is the largest ``|delta F_k| / F_ref_k`` or ``|delta C_u| / C_u``, times the
-ROM's ``indicator_scale`` (calibrated in training against the FE: the estimate is of the right
-size, not a bound, and falls short of the error by up to a few times on the 4-by-4).
+ROM's ``indicator_scale`` (calibrated in training against the FE: the raw estimate has the
+size of the error, not that of a bound, and fell short of it by up to 4 times on the 4-by-4).
 
 **Fallback**: a command outside the trained envelope (or with other unit modes), an
 indicator above ``tolerance``, or a reduced Newton that fails is answered by the FE twin
