@@ -94,8 +94,8 @@ def summary_lines(rom: ReducedModel) -> list[str]:
             f"{facts['capacitance_error_max']:.3%} mean {facts['capacitance_error_mean']:.4%} "
             f"(dC: max {facts['delta_capacitance_error_max']:.2%} of its range)",
             f"indicator ({calibrated}): max {facts['indicator_max']:.2e}; {facts['flagged']} command(s) above "
-            f"tolerance, "
-            f"{facts['over_tolerance']} with an error above it ({facts['over_tolerance_unflagged']} not flagged); "
+            f"tolerance, {facts['over_tolerance']} with an error above it ({facts['over_tolerance_unflagged']} not "
+            f"flagged); "
             f"reduced cold solve {facts['cold_solve_ms_median']:.1f} ms (median)"]
     return lines
 

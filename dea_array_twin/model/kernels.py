@@ -4,7 +4,7 @@ The same equations as the numpy reference in :mod:`.assembly` (which the tests c
 these against to 1e-12 relative), written as loops that keep every intermediate in
 registers or small buffers instead of arrays of shape ``(ne, nq, ...)``, on blocks of
 elements whose loops run over the block's elements so that the compiler vectorises
-them (the gradients stored elements-last).  With ``F = [F1 F2]`` (3x2), ``g = dPsi/dc``, ``H = d2Psi/dc2``
+them (the gradients stored by blocks).  With ``F = [F1 F2]`` (3x2), ``g = dPsi/dc``, ``H = d2Psi/dc2``
 (:mod:`.material`) and the reference gradients ``dN_a = (dN_a1, dN_a2)``:
 
     r_a  = t0 sum_q w_q  F S dN_a,            S = [[2 g0, g2], [g2, 2 g1]],
@@ -33,21 +33,21 @@ _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @numba.njit(inline="always", **_JIT)
-def _gather(x, elements, e0, nb, xb):
-    """``xb[n, i, j]``: coordinate ``i`` of node ``n`` of element ``e0 + j`` (``j < nb``)."""
+def _gather(x, elements, e0, width, xb):
+    """``xb[n, i, j]``: coordinate ``i`` of node ``n`` of element ``e0 + j`` (``j < width``, the block's elements)."""
     for n in range(elements.shape[1]):
-        for j in range(nb):
+        for j in range(width):
             base = 3 * elements[e0 + j, n]
             for i in range(3):
                 xb[n, i, j] = x[base + i]
 
 
 @numba.njit(inline="always", **_JIT)
-def _deformation(xb, gb, q, nb, f):
+def _deformation(xb, gb, q, width, f):
     """``f[2 i + a, j] = F_ia`` at point ``q`` of lane ``j``: ``sum_n x_ni dN_n/dX_a`` (``gb``: the block)."""
-    f[:, :nb] = 0.0
+    f[:, :width] = 0.0
     for n in range(gb.shape[0]):
-        for j in range(nb):
+        for j in range(width):
             d0, d1 = gb[n, 0, q, j], gb[n, 1, q, j]
             for i in range(3):
                 f[2 * i, j] += xb[n, i, j] * d0
@@ -73,10 +73,10 @@ def _stress(f, j, c10, c20, c30, k):
 
 
 @numba.njit(inline="always", **_JIT)
-def _add_forces(gb, q, nb, f, s, rb):
+def _add_forces(gb, q, width, f, s, rb):
     """``rb[n, i, j] += (F S dN_n)_i`` at point ``q`` (``s``: ``w S11, w S22, w S12`` per lane)."""
     for n in range(gb.shape[0]):
-        for j in range(nb):
+        for j in range(width):
             d0, d1 = gb[n, 0, q, j], gb[n, 1, q, j]
             sd0 = s[0, j] * d0 + s[2, j] * d1
             sd1 = s[2, j] * d0 + s[1, j] * d1
@@ -85,10 +85,10 @@ def _add_forces(gb, q, nb, f, s, rb):
 
 
 @numba.njit(inline="always", **_JIT)
-def _scatter(elements, e0, nb, rb, r):
+def _scatter(elements, e0, width, rb, r):
     """``r`` += the block's element forces ``rb``."""
     for n in range(elements.shape[1]):
-        for j in range(nb):
+        for j in range(width):
             base = 3 * elements[e0 + j, n]
             for i in range(3):
                 r[base + i] += rb[n, i, j]
@@ -112,20 +112,20 @@ def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
     s = np.empty((3, LANES))  # w S11, w S22, w S12
     for block in range(grad.shape[0]):
         e0, gb = block * LANES, grad[block]
-        nb = min(LANES, ne - e0)
-        _gather(x, elements, e0, nb, xb)
-        rb[:, :, :nb] = 0.0
+        width = min(LANES, ne - e0)
+        _gather(x, elements, e0, width, xb)
+        rb[:, :, :width] = 0.0
         for q in range(nq):
-            _deformation(xb, gb, q, nb, f)
-            for j in range(nb):
+            _deformation(xb, gb, q, width, f)
+            for j in range(width):
                 e = e0 + j
                 c0, c1, c2, _, _, _, g0, g1, g2 = _stress(f, j, c10, c20, c30, maxwell[e])
                 c[e, q, 0], c[e, q, 1], c[e, q, 2] = c0, c1, c2
                 g[e, q, 0], g[e, q, 1], g[e, q, 2] = g0, g1, g2
                 w = wt[block, q, j]
                 s[0, j], s[1, j], s[2, j] = 2.0 * g0 * w, 2.0 * g1 * w, g2 * w
-            _add_forces(gb, q, nb, f, s, rb)
-        _scatter(elements, e0, nb, rb, r)
+            _add_forces(gb, q, width, f, s, rb)
+        _scatter(elements, e0, width, rb, r)
 
 
 @numba.njit(inline="always", **_JIT)
@@ -159,13 +159,13 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
     kb = np.empty((10, LANES))  # K_ab's nine entries and its geometric term, per element
     for block in range(grad.shape[0]):
         e0, gb = block * LANES, grad[block]
-        nb = min(LANES, ne - e0)
-        _gather(x, elements, e0, nb, xb)
-        rb[:, :, :nb] = 0.0
+        width = min(LANES, ne - e0)
+        _gather(x, elements, e0, width, xb)
+        rb[:, :, :width] = 0.0
         for q in range(nq):
             f, sw = fq[q], sq[q]
-            _deformation(xb, gb, q, nb, f)
-            for j in range(nb):
+            _deformation(xb, gb, q, width, f)
+            for j in range(width):
                 e = e0 + j
                 k = maxwell[e]
                 c0, c1, c2, det, dy, ddy, g0, g1, g2 = _stress(f, j, c10, c20, c30, k)
@@ -195,16 +195,16 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
                     ht[q, n, 3, j] = h01 * b1 + h02 * b2
                     ht[q, n, 4, j] = h11 * b1 + h12 * b2
                     ht[q, n, 5, j] = h12 * b1 + h22 * b2
-            _add_forces(gb, q, nb, f, sw, rb)
-        _scatter(elements, e0, nb, rb, r)
+            _add_forces(gb, q, width, f, sw, rb)
+        _scatter(elements, e0, width, rb, r)
         for na in range(nen):
-            for nb_ in range(na, nen):
-                kb[:, :nb] = 0.0
+            for nb in range(na, nen):
+                kb[:, :width] = 0.0
                 for q in range(nq):
-                    f, sw, hb = fq[q], sq[q], ht[q, nb_]
-                    for j in range(nb):
+                    f, sw, hb = fq[q], sq[q], ht[q, nb]
+                    for j in range(width):
                         da0, da1 = gb[na, 0, q, j], gb[na, 1, q, j]
-                        db0, db1 = gb[nb_, 0, q, j], gb[nb_, 1, q, j]
+                        db0, db1 = gb[nb, 0, q, j], gb[nb, 1, q, j]
                         m00 = 2.0 * da0 * hb[0, j] + da1 * hb[2, j]
                         m01 = 2.0 * da0 * hb[3, j] + da1 * hb[5, j]
                         m10 = 2.0 * da1 * hb[1, j] + da0 * hb[2, j]
@@ -224,19 +224,19 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
                         kb[6, j] += f20 * u00 + f21 * u10
                         kb[7, j] += f20 * u01 + f21 * u11
                         kb[8, j] += f20 * u02 + f21 * u12
-                for j in range(nb):
+                for j in range(width):
                     e = e0 + j
                     geo = kb[9, j]
                     k00, k01, k02 = kb[0, j] + geo, kb[1, j], kb[2, j]
                     k10, k11, k12 = kb[3, j], kb[4, j] + geo, kb[5, j]
                     k20, k21, k22 = kb[6, j], kb[7, j], kb[8, j] + geo
-                    _add_row(values, position[e, 3 * na, nb_], k00, k01, k02)
-                    _add_row(values, position[e, 3 * na + 1, nb_], k10, k11, k12)
-                    _add_row(values, position[e, 3 * na + 2, nb_], k20, k21, k22)
-                    if nb_ != na:  # the mirror block K_ba = K_ab^T
-                        _add_row(values, position[e, 3 * nb_, na], k00, k10, k20)
-                        _add_row(values, position[e, 3 * nb_ + 1, na], k01, k11, k21)
-                        _add_row(values, position[e, 3 * nb_ + 2, na], k02, k12, k22)
+                    _add_row(values, position[e, 3 * na, nb], k00, k01, k02)
+                    _add_row(values, position[e, 3 * na + 1, nb], k10, k11, k12)
+                    _add_row(values, position[e, 3 * na + 2, nb], k20, k21, k22)
+                    if nb != na:  # the mirror block K_ba = K_ab^T
+                        _add_row(values, position[e, 3 * nb, na], k00, k10, k20)
+                        _add_row(values, position[e, 3 * nb + 1, na], k01, k11, k21)
+                        _add_row(values, position[e, 3 * nb + 2, na], k02, k12, k22)
 
 
 @numba.njit(**_JIT)

@@ -244,7 +244,7 @@ def train(cfg: ArrayConfig, envelope: Envelope, n_snapshots: int = 240, n_modes:
     twin = ReducedTwin(cfg, rom, tolerance=np.inf)
     validation = validate(twin, held_out)
     timings["validation_rom_s"] = time.perf_counter() - tic
-    facts = dict(rom.validation, **validation.table(tolerance), timings=timings, indicator_scale=rom.indicator_scale,
+    facts = dict(rom.validation, **validation.table(tolerance), timings=timings,
                  calibration_commands=n_calibration - len(calibration_failures), snapshot_failures=len(failures),
                  validation_failures=len(held_failures) + len(calibration_failures), seed=seed)
     rom = dataclasses.replace(rom, validation=facts)
