@@ -81,6 +81,12 @@ FALLBACKS = ("envelope", "indicator", "newton", "snap", "contact")
 #: Reduced updates (evaluations) one solve may spend on the heights of its biased units
 #: before the FE answers it (a warm update takes one or two).
 MAX_HEIGHT_ITERATIONS = 8
+#: Storage type of the sampled points' maps ``A_p`` (:func:`.rom_kernels.point_maps`; the kernels
+#: accumulate in float64).  An update streams them from memory once per evaluation (12 MB on the
+#: 4-by-4 at 150 modes, more than a core's cache) and is bound by that: in float32 the 4-by-4's
+#: update took half the time, and forces and capacitances moved by ~1e-7 of their values (the
+#: maps' rounding, 6e-8), four orders below a ROM's tolerance (docs/rom.md).
+MAP_DTYPE = np.float32
 
 
 def _recover(reference: np.ndarray, vectors: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -228,8 +234,8 @@ class ReducedTwin:
         self._nc = 1 + nd + rom.n_modes
         self._vectors = np.ascontiguousarray(np.hstack([rom.lift, rom.basis]))
         full = np.hstack([rom.reference[:, None], self._vectors])
-        self._fmap = point_maps(model.disc, rom.point_element, rom.point_index, full)
-        self._wmap = point_maps(model.disc, rom.point_element, rom.point_index, rom.enrichment)
+        self._fmap = point_maps(model.disc, rom.point_element, rom.point_index, full).astype(MAP_DTYPE)
+        self._wmap = point_maps(model.disc, rom.point_element, rom.point_index, rom.enrichment).astype(MAP_DTYPE)
         self._xi = np.ascontiguousarray(rom.point_weight)
         self._unit = np.ascontiguousarray(model.mesh.element_unit[rom.point_element])
         self._held = np.ascontiguousarray(held_elements(model, self.modes)[rom.point_element])

@@ -12,6 +12,7 @@ import pytest
 
 from dea_array_twin import ArrayTwin
 from dea_array_twin.model.reduced import Envelope, ReducedModel, RomMismatchError
+from dea_array_twin.model import reduced_twin
 from dea_array_twin.model.reduced_twin import ReducedTwin
 from dea_array_twin.model.solver import SolveCancelled
 from dea_array_twin.rom.train import Validation, indicator_scale
@@ -76,6 +77,27 @@ def test_warm_updates_follow_the_fe_along_a_trajectory_with_one_or_two_evaluatio
         assert i == 0 or res.iterations <= 2
         worst = max(worst, *_errors(res, ref, rom))
     assert worst <= TOLERANCE
+
+
+def test_point_maps_in_float32_move_the_outputs_by_their_round_off_only(cfg, rom, monkeypatch):
+    """The sampled points' maps are stored in float32 (``MAP_DTYPE``: an update is bound by streaming
+    them from memory).  Along the path above, forces and capacitances stay within 1e-5 of those with
+    float64 maps (relative; measured ~1e-7, the maps' rounding being 6e-8; the ROM's tolerance is
+    2e-3), with the same number of evaluations and refreshes."""
+    runs = {}
+    for dtype in (np.float64, np.float32):
+        monkeypatch.setattr(reduced_twin, "MAP_DTYPE", dtype)
+        twin = ReducedTwin(cfg, rom)
+        assert twin._fmap.dtype == dtype and twin._wmap.dtype == dtype
+        out = [twin.solve([0.002, 0.004, 0.006] + 1e-4 * i * np.array([1.0, 1.0, -1.0]),
+                          [0.0, 500.0, 1500.0] + 20.0 * i * np.array([0.0, 1.0, 1.0])) for i in range(40)]
+        runs[dtype] = (np.array([r.force for r in out]), np.array([r.capacitance for r in out]),
+                       twin.evaluations, twin.refreshes)
+    (f64, c64, e64, r64), (f32, c32, e32, r32) = runs[np.float64], runs[np.float32]
+    assert np.abs(f32 - f64).max() <= 1e-5 * np.abs(f64).max()
+    assert np.abs(c32 / c64 - 1.0).max() <= 1e-5
+    assert (e32, r32) == (e64, r64)
+    assert np.abs(f32 - f64).max() > 0.0  # the float32 maps were used
 
 
 def test_energy_consistent_force_and_capacitance_are_derivatives_of_the_reduced_energy(cfg, rom):
