@@ -97,6 +97,9 @@ def summary_lines(rom: ReducedModel) -> list[str]:
             f"tolerance, {facts['over_tolerance']} with an error above it ({facts['over_tolerance_unflagged']} not "
             f"flagged); "
             f"reduced cold solve {facts['cold_solve_ms_median']:.1f} ms (median)"]
+    if facts.get("rom_fallbacks"):
+        lines.append(f"the reduced model handed {facts['rom_fallbacks']} of the {facts['commands']} held-out commands "
+                     f"to the FE (its Newton did not converge there): the errors above are of the others")
     return lines
 
 

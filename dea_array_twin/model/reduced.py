@@ -233,22 +233,29 @@ class ReducedModel:
         return int(np.count_nonzero(self.point_weight > 0))
 
     def validation_warning(self) -> str:
-        """What its validation table says against using it, or '' (errors within :attr:`tolerance`).
+        """What its validation table says against using it, or '' (errors within :attr:`tolerance`, every
+        held-out command answered by the reduced model).
 
         A ROM whose held-out errors exceeded its tolerance may answer that far off the FE; the
         text says how far, on how many commands, and how many of those the error indicator
-        missed (it does not see every error on large arrays: ``docs/rom.md``).
+        missed (it does not see every error on large arrays: ``docs/rom.md``).  A ROM that handed
+        held-out commands to the FE (its Newton did not converge) answers such commands at the
+        FE's speed; the text says on how many.
         """
         facts = self.validation
         if "force_error_max" not in facts:
             return ""
         force, capacitance = facts["force_error_max"], facts["capacitance_error_max"]
-        if max(force, capacitance) <= self.tolerance:
-            return ""
-        return (f"its validation found errors above its tolerance {self.tolerance:.3%} (force up to {force:.3%}, "
-                f"capacitance up to {capacitance:.3%}) on {facts['over_tolerance']} of {facts['commands']} held-out "
-                f"commands, {facts['over_tolerance_unflagged']} of them missed by the error indicator: an update "
-                f"it answers may be that far off the FE")
+        parts = []
+        if max(force, capacitance) > self.tolerance:
+            parts.append(f"its validation found errors above its tolerance {self.tolerance:.3%} (force up to "
+                         f"{force:.3%}, capacitance up to {capacitance:.3%}) on {facts['over_tolerance']} of "
+                         f"{facts['commands']} held-out commands, {facts['over_tolerance_unflagged']} of them missed "
+                         f"by the error indicator: an update it answers may be that far off the FE")
+        if facts.get("rom_fallbacks"):
+            parts.append(f"it handed {facts['rom_fallbacks']} of {facts['commands']} held-out commands to the FE "
+                         f"(its Newton did not converge there): updates near them run at the FE's speed")
+        return "; ".join(parts)
 
     _ARRAYS = ("reference", "lift", "basis", "enrichment", "point_element", "point_index", "point_weight",
                "force_reference", "train_parameters", "train_coordinates", "singular_values")

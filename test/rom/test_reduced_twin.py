@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 
 from dea_array_twin import ArrayTwin
-from dea_array_twin.model.reduced import Envelope, ReducedModel, RomMismatchError
 from dea_array_twin.model import reduced_twin
+from dea_array_twin.model.reduced import Envelope, ReducedModel, RomMismatchError
 from dea_array_twin.model.reduced_twin import ReducedTwin
+from dea_array_twin.model.rom_build import Snapshots
 from dea_array_twin.model.solver import SolveCancelled
-from dea_array_twin.rom.train import Validation, indicator_scale
+from dea_array_twin.rom.train import Validation, indicator_scale, validate
 from dea_array_twin.romfile import RomFileError, load_rom, save_rom
 
 TOLERANCE = 2e-3
@@ -216,6 +217,30 @@ def over_tolerance(rom, force=0.0056, capacitance=0.0031, over=43, unflagged=25)
     table = dict(rom.validation, force_error_max=force, capacitance_error_max=capacitance, commands=60,
                  over_tolerance=over, over_tolerance_unflagged=unflagged)
     return dataclasses.replace(rom, validation=table)
+
+
+def test_validation_counts_the_commands_the_reduced_model_hands_to_the_fe(cfg, rom):
+    """A held-out command the reduced model does not answer (here one outside its envelope: voltage on
+    unit 1, which it was never trained with; in training, a reduced Newton that did not converge) is
+    counted with its reason and left out of the errors, instead of ending a training in a traceback;
+    the table and the ROM's warning say so.  A set it answers none of is an error."""
+    fe = ArrayTwin(cfg)
+    commands = [([0.003, 0.004, 0.005], [0.0, 1000.0, 500.0]), ([0.003, 0.004, 0.005], [800.0, 1000.0, 500.0])]
+    results = [fe.solve(d, v) for d, v in commands]
+    snaps = Snapshots(np.array([d for d, _ in commands]), np.array([v for _, v in commands]),
+                      np.array([r.positions.ravel() for r in results]), np.array([r.force for r in results]),
+                      np.array([r.capacitance for r in results]))
+    checked = validate(ReducedTwin(cfg, rom, tolerance=np.inf), snaps)
+    assert checked.force_error.shape == (1, 3) and len(checked.fallbacks) == 1
+    assert checked.fallbacks[0].startswith("envelope")
+    table = checked.table(TOLERANCE)
+    assert table["commands"] == 2 and table["rom_fallbacks"] == 1
+    assert table["force_error_max"] <= TOLERANCE
+    warning = dataclasses.replace(rom, validation=dict(rom.validation, **table)).validation_warning()
+    assert "handed 1 of 2 held-out commands to the FE" in warning
+    with pytest.raises(RuntimeError, match="answered none of the 1 commands"):
+        validate(ReducedTwin(cfg, rom, tolerance=np.inf), dataclasses.replace(
+            snaps, **{f.name: getattr(snaps, f.name)[1:] for f in dataclasses.fields(snaps)}))
 
 
 def test_a_rom_validated_beyond_its_tolerance_says_how_far_and_what_the_indicator_missed(rom):
