@@ -29,9 +29,10 @@ the force messages per tick (every tick publishes), the node's diagnostics and t
 and this one used.
 Targets (issue 15): 1x3 <= 0.1 % force and capacitance error, <= 0.1 ms per update,
 the node at 1 kHz holding >= 99 % of its ticks; 4x4 <= 0.5 ms per update.
-``--rom FILE`` reuses a trained ROM (its stored validation table is printed; held-out
-commands are not re-solved).  Not a test: numbers for the
-notes, with the machine's load (``uptime``) printed next to them.
+``--second-step X`` runs the paths with ``ReducedTwin(..., second_step=X)`` (the output change of
+a first correction above which an update evaluates a second time).  ``--rom FILE`` reuses a
+trained ROM (its stored validation table is printed; held-out commands are not re-solved).
+Not a test: numbers for the notes, with the machine's load (``uptime``) printed next to them.
 """
 
 from __future__ import annotations
@@ -117,13 +118,13 @@ def updater(twin, modes: tuple[str, ...] | None, dt: float | None, d: np.ndarray
     return lambda i: twin.step(dt, d[i], v[i], f[i], modes) if i else twin.solve(d[i], v[i], modes, force=f[i])
 
 
-def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray,
-            kind: str = "driven") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, kind: str = "driven",
+            second_step: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Reduced and FE twins along one path: force and capacitance errors of the ROM, its position errors [m],
     FE times [ms], and whether its (scaled) indicator was above the ROM's tolerance (an update the
     ROM's own tolerance would have sent to the FE; here the ROM answers every update)."""
     cfg, modes, dt = kind_setup(cfg, kind)
-    twin = ReducedTwin(cfg, rom, tolerance=np.inf)
+    twin = ReducedTwin(cfg, rom, tolerance=np.inf, second_step=second_step)
     fe = ArrayTwin(cfg, NewtonSettings(check_stability=False))
     run, run_fe = updater(twin, modes, dt, d, v), updater(fe, modes, dt, d, v)
     force, cap, position, fe_ms, flagged = [], [], [], [], []
@@ -139,12 +140,12 @@ def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray,
     return np.array(force[1:]), np.array(cap[1:]), np.array(position[1:]), np.array(fe_ms[1:]), np.array(flagged[1:])
 
 
-def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background: bool,
-                 kind: str = "driven") -> tuple[np.ndarray, np.ndarray, dict]:
+def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background: bool, kind: str = "driven",
+                 second_step: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The ROM alone along one path (as a control loop runs it): wall and process CPU ms per update after the
     first (the CPU time leaves out the time other processes held the core, and counts the refresh worker)."""
     cfg, modes, dt = kind_setup(cfg, kind)
-    twin = ReducedTwin(cfg, rom, tolerance=np.inf, background_refresh=background)
+    twin = ReducedTwin(cfg, rom, tolerance=np.inf, background_refresh=background, second_step=second_step)
     run = updater(twin, modes, dt, d, v)
     run(0)
     start = (twin.evaluations, twin.refreshes)
@@ -226,6 +227,8 @@ def main() -> None:
                         help="update kinds on the paths: driven, biased, dynamic (default all three)")
     parser.add_argument("--rounds", type=int, default=1,
                         help="timing rounds, each timing every kind in turn (default 1)")
+    parser.add_argument("--second-step", type=float,
+                        help="ReducedTwin's second_step on the paths (default: its own, the tolerance, at most 1e-3)")
     parser.add_argument("--rom", help="use this trained ROM file instead of training")
     parser.add_argument("--save", help="write the trained ROM here")
     parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
@@ -260,14 +263,15 @@ def main() -> None:
             print(f"saved {save_rom(rom, args.save)}")
     print("\n".join(summary_lines(rom)))
     print(f"\nwarm trajectories: {args.paths} x {args.length} updates, {args.step * 1e3:g} mm per update per "
-          f"indenter; {load()}")
+          f"indenter" + (f", second_step {args.second_step:g}" if args.second_step is not None else "")
+          + f"; {load()}")
     paths = [trajectory(rom.envelope, args.length, args.step, seed) for seed in range(args.paths)]
     kinds = args.kinds.split(",")
     for kind in kinds:
         print(f" {kind}" + ("" if kind == "driven" else f" (unit {cfg.n_units // 2 + 1}: LBS {LBS}, force "
                                                         f"{FORCE:g} N sin, mass {MASS if kind == 'dynamic' else 0:g} kg"
                                                         + (f", dt {DT:g} s)" if kind == "dynamic" else ")")))
-        errors = [compare(cfg, rom, d, v, kind) for d, v in paths]
+        errors = [compare(cfg, rom, d, v, kind, args.second_step) for d, v in paths]
         force, cap, position, fe_ms, flagged = (np.concatenate([e[i] for e in errors]) for i in range(5))
         print(f"  errors against the FE's warm updates: force max {force.max():.4%} mean {force.mean():.5%}; "
               f"capacitance max {cap.max():.4%} mean {cap.mean():.5%}; position max {position.max() * 1e6:.3g} um; "
@@ -277,7 +281,7 @@ def main() -> None:
         print(f" timing, round {round_} of {args.rounds}")
         for kind in kinds:
             for background in (False, True):
-                runs = [time_updates(cfg, rom, d, v, background, kind) for d, v in paths]
+                runs = [time_updates(cfg, rom, d, v, background, kind, args.second_step) for d, v in paths]
                 ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
                 n = ms.size
                 where = "in a worker thread" if background else "in the calling thread"
