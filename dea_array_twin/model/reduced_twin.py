@@ -82,8 +82,8 @@ FALLBACKS = ("envelope", "indicator", "newton", "snap", "contact")
 #: before the FE answers it (a warm update takes one or two).
 MAX_HEIGHT_ITERATIONS = 8
 #: Storage type of the sampled points' maps ``A_p`` (:func:`.rom_kernels.point_maps`; the kernels
-#: accumulate in float64).  An update streams them from memory once per evaluation (12 MB on the
-#: 4-by-4 at 150 modes, more than a core's cache) and is bound by that: in float32 the 4-by-4's
+#: accumulate in float64).  An update streams them from memory once per evaluation (16 MB on the
+#: 4-by-4 at 150 modes in float64, more than a core's cache) and is bound by that: in float32 the 4-by-4's
 #: update took half the time, and forces and capacitances moved by ~1e-7 of their values (the
 #: maps' rounding, 6e-8), four orders below a ROM's tolerance (docs/rom.md).
 MAP_DTYPE = np.float32
