@@ -338,36 +338,41 @@ def _quadratic_nodes(ratio: float | None) -> tuple[float, ...]:
     return (0.0, -1.0) if ratio is None else (0.0, -1.0, -1.0 - ratio)
 
 
-def _path_basis(nodes: Sequence[float]) -> list[list[float]]:
+def _path_basis(nodes: Sequence[float], positions: Sequence[int] | None = None) -> list[list[float]]:
     """``N`` of the polynomial through states at the path parameters ``nodes`` (``nodes[0] = 0``: the last).
 
-    With the states given by their changes ``c_i = q_i - q_{i+1}`` (the newest first), the
-    polynomial with ``P(t_j) = q_j`` is
+    With the states given by their changes ``c_i = q_i - q_{i+1}`` (the newest first) and
+    ``nodes[j]`` the parameter of state ``q_{p_j}``, ``p = positions`` (default ``0, 1, 2, ...``;
+    a state that repeats a newer one's command is left out), the polynomial with
+    ``P(t_j) = q_{p_j}`` is
 
-        P(lambda) - q_0 = -sum_m lambda^m sum_i N_mi c_i,    m = 1..k,
+        P(lambda) - q_0 = -sum_m lambda^m sum_i N_mi c_i,    m = 1..M,
 
-    where ``N_mi = sum_{j > i} a_mj``, ``a_mj`` the coefficient of ``lambda^m`` in the Lagrange
-    polynomial ``l_j`` of ``t_j`` (``q_j - q_0 = -(c_0 + ... + c_{j-1})``; ``l_j(0) = 0`` for
-    ``j >= 1``).  Plain Python: ``k`` is at most 3 here, and numpy's call overhead is what it costs.
+    where ``N_mi = sum_{j: p_j > i} a_mj``, ``a_mj`` the coefficient of ``lambda^m`` in the
+    Lagrange polynomial ``l_j`` of ``t_j`` (``q_p - q_0 = -(c_0 + ... + c_{p-1})``; ``l_j(0) = 0``
+    for ``j >= 1``).  Plain Python: ``M`` is at most 3 here, and numpy's call overhead is what it
+    costs.
     """
-    k = len(nodes) - 1
+    degree = len(nodes) - 1
+    positions = range(len(nodes)) if positions is None else positions
     lagrange = []  # lagrange[j - 1][m]: coefficient of lambda^m in l_j
-    for j in range(1, k + 1):
+    for j in range(1, degree + 1):
         poly = [1.0]
         for i, t in enumerate(nodes):
             if i != j:  # poly *= (lambda - t) / (t_j - t)
                 scale = 1.0 / (nodes[j] - t)
                 poly = [scale * (lo - t * hi) for lo, hi in zip([0.0] + poly, poly + [0.0])]
         lagrange.append(poly)
-    return [[sum(lagrange[j][m] for j in range(i, k)) for i in range(k)] for m in range(1, k + 1)]
+    return [[sum(lagrange[j - 1][m] for j in range(1, degree + 1) if positions[j] > i) for i in range(positions[-1])]
+            for m in range(1, degree + 1)]
 
 
 def _path_coefficients(lam: float, basis: list[list[float]], slope: bool = False) -> list[float]:
     """``-u(lambda) N`` of :func:`_path_basis` (``slope``: ``-u'(lambda) N``): the polynomial's change
     from the last state (its slope) is ``sum_i c_i changes[i]`` (:func:`_on_path`)."""
-    k = len(basis)
-    powers = [m * lam ** (m - 1) for m in range(1, k + 1)] if slope else [lam ** m for m in range(1, k + 1)]
-    return [-sum(powers[m] * basis[m][i] for m in range(k)) for i in range(k)]
+    degree = len(basis)
+    powers = [m * lam ** (m - 1) for m in range(1, degree + 1)] if slope else [lam ** m for m in range(1, degree + 1)]
+    return [-sum(powers[m] * basis[m][i] for m in range(degree)) for i in range(len(basis[0]))]
 
 
 def _on_path(coefficients: Sequence[float], changes: Sequence[np.ndarray]) -> np.ndarray:
@@ -784,7 +789,8 @@ class EquilibriumSolver:
         states of a solve without biased units are a function of the command, so a turn between
         them is no harm as long as they are apart: :func:`_path_nodes`, :func:`_within_reach`).
         Fewer states (the first solves of a path, states too close together, a reach too far)
-        lower the degree, down to the secant.
+        lower the degree, down to the secant; a state that repeats a newer one's command is left
+        out, so a motion that turned back retraces the states it passed.
         """
         last = self._last_path
         if last is None or not np.array_equal(v0, v1) or not last.continues(x, free, v0):
@@ -953,10 +959,12 @@ def _on_command_path(dp_new: np.ndarray, changes: Sequence[np.ndarray],
     or ``lambda`` is out of reach (:func:`_within_reach`).
     """
     stacked = np.array(changes)
-    nodes = _path_nodes((stacked @ stacked.T).tolist())
-    if nodes is None:
+    path = _path_nodes((stacked @ stacked.T).tolist())
+    if path is None:
         return None
-    basis, k = _path_basis(nodes), len(changes)
+    nodes, positions = path
+    changes, stacked = changes[:positions[-1]], stacked[:positions[-1]]  # states past the last kept one: out
+    basis, k = _path_basis(nodes, positions), len(nodes) - 1
     monomials = -(np.array(basis) @ stacked)  # P(lambda) = sum_m lambda^m monomials[m - 1]
     v_gram, v_dp = (monomials @ monomials.T).tolist(), (monomials @ dp_new).tolist()
     # P'.(P - dp_new) and P'.P' as polynomials in lambda (coefficients of lambda^0, lambda^1, ...)
@@ -986,24 +994,29 @@ def _horner(coefficients: Sequence[float], lam: float) -> float:
     return out
 
 
-def _path_nodes(gram: list[list[float]]) -> tuple[float, ...] | None:
-    """The path parameters ``0, -1, -1 - a_1, -1 - a_1 - a_2, ...`` of the last commands, from the dot
-    products ``gram`` of their changes (the last solve's first).
+def _path_nodes(gram: list[list[float]]) -> tuple[tuple[float, ...], tuple[int, ...]] | None:
+    """``(nodes, positions)``: the path parameters ``0, -1, -1 - a_1, ...`` of the last commands, from the
+    dot products ``gram`` of their changes (the last solve's first), and which states they are.
 
     Change ``i`` spans ``a_i`` times the last one: the signed ratio when it lies along it (to
     1e-6 of its length: a path that turned back comes over the same parameters again), else the
-    ratio of their lengths (chord-length spacing along a curve).  None when the parameters do
-    not spread the states apart (:func:`_apart`).
+    ratio of their lengths (chord-length spacing along a curve).  A state whose parameter is a
+    newer state's (within 1e-6: the same command, so the same state without biased units, as
+    when a back-and-forth motion retraces its path) is left out, the newer one kept.  None when
+    the parameters do not spread the states apart (:func:`_apart`).
     """
     last2 = gram[0][0]
     if not last2 > 0.0:
         return None
-    nodes = [0.0, -1.0]
+    nodes, positions, node = [0.0, -1.0], [0, 1], -1.0
     for i in range(1, len(gram)):
         ratio = gram[i][0] / last2
         off = gram[i][i] - ratio * gram[i][0]  # |c_i - ratio c_0|^2
-        nodes.append(nodes[-1] - (ratio if off <= 1e-12 * gram[i][i] else math.sqrt(gram[i][i] / last2)))
-    return tuple(nodes) if _apart(nodes) else None
+        node -= ratio if off <= 1e-12 * gram[i][i] else math.sqrt(gram[i][i] / last2)
+        if all(abs(node - t) > 1e-6 for t in nodes):
+            nodes.append(node)
+            positions.append(i + 1)
+    return (tuple(nodes), tuple(positions)) if _apart(nodes) else None
 
 
 def _apart(nodes: Sequence[float]) -> bool:
