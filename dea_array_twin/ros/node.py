@@ -285,6 +285,10 @@ class TwinNode(Node):
                         "the FE answering outside its envelope", read_only=True)).value
         rom_file = self.declare_parameter("rom_file", "", ParameterDescriptor(
             description="ROM file (.npz) for model: rom", read_only=True)).value
+        second_step = declare_number(self, "rom_second_step", 0.0,
+                                     "model rom: output change (fraction of its scale) of an update's first Newton "
+                                     "correction above which it evaluates a second time; 0 = the ROM's tolerance, "
+                                     "at most 1e-3 (docs/rom.md: 2e-3 on a 4-by-4)")
         if model == "fe":  # the tangents of warm updates refreshed off the solver thread
             return ArrayTwin(cfg, background_tangent=True)
         if model != "rom":
@@ -293,7 +297,7 @@ class TwinNode(Node):
             raise ConfigError("rom_file: model 'rom' needs a ROM file (train one with dea-twin rom train)")
         # A refresh of the reduced Hessian (0.5-4 ms, ~10 a second on a smooth stream) would
         # hold the solver thread for one to four 1 kHz ticks: it runs in a worker thread.
-        twin = ReducedTwin(cfg, load_rom(rom_file, cfg), background_refresh=True)
+        twin = ReducedTwin(cfg, load_rom(rom_file, cfg), background_refresh=True, second_step=second_step or None)
         warning = twin.rom.validation_warning()
         if warning:
             self.get_logger().warning(f"rom_file {rom_file}: {warning} (fe_check_rate compares it with the FE while "
@@ -599,6 +603,7 @@ class TwinNode(Node):
         twin = self.rom_twin
         fallbacks = twin.fallbacks
         values.update(model="rom", rom_file=twin.rom.config_hash, rom_tolerance=twin.tolerance,
+                      rom_second_step=twin.second_step,
                       rom_validation=twin.rom.validation_warning() or "within its tolerance",
                       rom_updates=twin.updates, rom_refreshes=twin.refreshes, rom_resyncs=twin.resyncs,
                       **{f"rom_fallbacks_{kind}": fallbacks.get(kind, 0)

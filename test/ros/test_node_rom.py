@@ -9,7 +9,7 @@ import pytest
 
 from dea_array_twin import ArrayTwin
 from dea_array_twin.romfile import save_rom
-from dea_array_twin.ros.testing import TwinHarness
+from dea_array_twin.ros.testing import TwinHarness, diagnostic_values
 
 
 def _diag(h, predicate, timeout=30.0):
@@ -81,6 +81,20 @@ def test_an_in_process_rom_node_lowers_the_switch_interval_only_while_it_lives(c
     with TwinHarness(parameters=params):
         assert sys.getswitchinterval() == pytest.approx(0.1 / 200.0)
     assert sys.getswitchinterval() == before
+
+
+def test_rom_second_step_reaches_the_reduced_twin(coarse_rom):
+    """``rom_second_step`` sets the reduced twin's ``second_step`` (0, the default: the ROM's tolerance, at most
+    1e-3) and the diagnostics show it."""
+    cfg, rom, path, yaml_path = coarse_rom
+    params = {"config_file": str(yaml_path), "model": "rom", "rom_file": str(path), "fe_check_rate": 0.0,
+              "marker_rate": 0.0}
+    with TwinHarness(parameters=params) as h:
+        assert h.twin_node.rom_twin.second_step == min(1e-3, rom.tolerance)
+    with TwinHarness(parameters=dict(params, rom_second_step=0.002)) as h:
+        assert h.twin_node.rom_twin.second_step == 0.002
+        diag = h.wait_for("/diagnostics", lambda m: "rom_second_step" in diagnostic_values(m), timeout=30)
+        assert float(diagnostic_values(diag)["rom_second_step"]) == 0.002
 
 
 def test_a_rom_node_answers_biased_units_from_the_rom_quasi_statically_and_in_time_steps(coarse_rom, tmp_path):
