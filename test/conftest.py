@@ -105,3 +105,33 @@ class OutputLines:
                 return predicate(self.lines)
             self.lines.append(line)
         return True
+
+
+def run_until_then_interrupt(args: list[str], until, timeout: float, **popen) -> tuple[OutputLines, bool, int]:
+    """Run ``args`` in a ROS domain of its own (discovery on localhost, unbuffered output), wait up to
+    ``timeout`` s for ``until(lines)`` on its output, then SIGINT it.
+
+    Returns the output (with the lines the pipe still held after the exit), whether ``until`` held,
+    and the exit code after SIGINT; a process that outlives this is killed.
+    """
+    import os
+    import signal
+    import subprocess
+
+    from domain_coordinator import domain_id
+
+    with domain_id() as domain:
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
+                   PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **popen)
+        with proc:  # closes the pipe when done
+            try:
+                output = OutputLines(proc.stdout)
+                held = output.wait_for(until, timeout)
+                proc.send_signal(signal.SIGINT)
+                code = proc.wait(timeout=30)
+                output.wait_for(lambda lines: False, timeout=1.0)  # the last lines the pipe still holds
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+    return output, held, code

@@ -17,7 +17,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-from conftest import OutputLines
+from conftest import run_until_then_interrupt
 
 PACKAGE = 'dea_array_twin'
 EXECUTABLE = 'dea-twin'
@@ -85,25 +85,8 @@ def test_ros2_run_finds_the_node_executables(executable):
 
 def test_installed_twin_node_starts_and_stops_on_sigint(tmp_path):
     """The lib/ launcher runs the real node: it logs that it is ready, and SIGINT ends it with 0."""
-    import signal
-
-    from domain_coordinator import domain_id
-
-    with domain_id() as domain:
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-                   PYTHONUNBUFFERED='1')
-        proc = subprocess.Popen([str(PREFIX / 'lib' / PACKAGE / 'twin_node'), '--ros-args', '-p',
-                                 'update_rate:=20.0'], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
-                                stderr=subprocess.STDOUT, text=True)
-        with proc:  # closes the pipe when done
-            try:
-                output = OutputLines(proc.stdout)
-                ready = output.wait_for(lambda lines: any('ready' in line for line in lines), timeout=60)
-                assert ready, f'twin_node not ready within 60 s (exit code {proc.poll()}): {output.lines}'
-                proc.send_signal(signal.SIGINT)
-                code = proc.wait(timeout=20)
-                output.wait_for(lambda lines: False, timeout=1.0)  # the last lines the pipe still holds
-                assert code == 0, f'exit code {code} after SIGINT: {output.lines}'
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
+    output, ready, code = run_until_then_interrupt(
+        [str(PREFIX / 'lib' / PACKAGE / 'twin_node'), '--ros-args', '-p', 'update_rate:=20.0'],
+        lambda lines: any('ready' in line for line in lines), timeout=60, cwd=tmp_path)
+    assert ready, f'twin_node not ready within 60 s (exit code {code} after SIGINT): {output.lines}'
+    assert code == 0, f'exit code {code} after SIGINT: {output.lines}'

@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import OutputLines
+from conftest import run_until_then_interrupt
 
 from dea_array_twin import ArrayTwin
 from dea_array_twin.cli.main import main
@@ -93,11 +93,6 @@ def test_demo_runs_the_twin_with_the_wave_controller():
     Read as it runs, with a generous deadline (a loaded machine runs the wave slower),
     then stopped with SIGINT, which ends it cleanly.
     """
-    import os
-    import signal
-
-    from domain_coordinator import domain_id
-
     def deflections(lines):
         rows = [line for line in lines if line.count("|") == 3 and not line.startswith("t [s]")]
         return np.array([[float(cell.split()[0]) for cell in row.split("|")[1:]] for row in rows]).reshape(-1, 3)
@@ -108,22 +103,9 @@ def test_demo_runs_the_twin_with_the_wave_controller():
         up = [np.flatnonzero(d[:, k] > 5.0) for k in (0, 1)]
         return up[0].size > 0 and up[1].size > 0 and any("unit 2 triggered by capacitance" in x for x in lines)
 
-    with domain_id() as domain:
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-                   PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen([sys.executable, "-m", "dea_array_twin.cli", "demo", "--duration", "0"], env=env,
-                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        with proc:  # closes the pipe when done
-            try:
-                output = OutputLines(proc.stdout)
-                done = output.wait_for(unit_2_up_after_unit_1, timeout=90)
-                proc.send_signal(signal.SIGINT)
-                code = proc.wait(timeout=30)
-                output.wait_for(lambda lines: False, timeout=1.0)  # the last lines the pipe still holds
-                assert code == 0, f"exit code {code} after SIGINT: {output.lines[-40:]}"
-            finally:
-                if proc.poll() is None:
-                    proc.kill()
+    output, done, code = run_until_then_interrupt([sys.executable, "-m", "dea_array_twin.cli", "demo", "--duration",
+                                                   "0"], unit_2_up_after_unit_1, timeout=90)
+    assert code == 0, f"exit code {code} after SIGINT: {output.lines[-40:]}"
     assert done, "".join(output.lines[-40:])
     d = deflections(output.lines)
     first_up = [int(np.argmax(d[:, k] > 5.0)) for k in (0, 1)]
