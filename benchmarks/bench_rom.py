@@ -2,6 +2,7 @@
 
 Run:  .venv/bin/python benchmarks/bench_rom.py [--size 1x3|4x4] [--snapshots N] [--modes R]
                                                [--validation N] [--workers N] [--rom FILE] [--save FILE]
+                                               [--pace HZ] [--second-step S]
       .venv/bin/python benchmarks/bench_rom.py --rom FILE --node SECONDS [--fe-check-rate HZ]
                                                [--realtime-priority P]
 
@@ -13,7 +14,8 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
     voltage by the matching fraction of its range, reflected at the envelope): the same
     errors against FE warm solves (and the FE's time per warm update), then the time per
     update of the library's ``ReducedTwin.solve`` running alone on the same paths
-    (median, mean, p99, max; refreshes in the calling thread, then ``background_refresh``);
+    (median, mean, p99, max; refreshes in the calling thread, then ``background_refresh``;
+    back to back, or one per period at ``--pace`` Hz, as a control loop runs them);
   - the same for actuator units (``--kinds``): ``biased``, the middle unit biased on an
     LBS of 40 N/m (free position 10.75 mm) with a force command of 20 mN sin(2 pi i / 200)
     at update i, the other units on the paths (quasi-static solves); ``dynamic``, the same
@@ -141,16 +143,21 @@ def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, kind: str = "dr
 
 
 def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background: bool, kind: str = "driven",
-                 second_step: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+                 second_step: float | None = None, pace: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
     """The ROM alone along one path (as a control loop runs it): wall and process CPU ms per update after the
-    first (the CPU time leaves out the time other processes held the core, and counts the refresh worker)."""
+    first (the CPU time leaves out the time other processes held the core, and counts the refresh worker);
+    with ``pace`` [Hz] one update per period of a steady clock, else back to back."""
     cfg, modes, dt = kind_setup(cfg, kind)
     twin = ReducedTwin(cfg, rom, tolerance=np.inf, background_refresh=background, second_step=second_step)
     run = updater(twin, modes, dt, d, v)
     run(0)
     start = (twin.evaluations, twin.refreshes)
     ms, cpu = [], []
+    due = time.perf_counter()
     for i in range(1, len(d)):
+        if pace > 0:
+            due += 1.0 / pace
+            time.sleep(max(0.0, due - time.perf_counter()))
         tic, tic_cpu = time.perf_counter(), time.process_time()
         run(i)
         ms.append(1e3 * (time.perf_counter() - tic))
@@ -229,6 +236,9 @@ def main() -> None:
                         help="timing rounds, each timing every kind in turn (default 1)")
     parser.add_argument("--second-step", type=float,
                         help="ReducedTwin's second_step on the paths (default: its own, the tolerance, at most 1e-3)")
+    parser.add_argument("--pace", type=float, default=0.0,
+                        help="time the updates at this rate [Hz], as a control loop runs them (default 0: back to "
+                             "back)")
     parser.add_argument("--rom", help="use this trained ROM file instead of training")
     parser.add_argument("--save", help="write the trained ROM here")
     parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
@@ -281,10 +291,12 @@ def main() -> None:
         print(f" timing, round {round_} of {args.rounds}")
         for kind in kinds:
             for background in (False, True):
-                runs = [time_updates(cfg, rom, d, v, background, kind, args.second_step) for d, v in paths]
+                runs = [time_updates(cfg, rom, d, v, background, kind, args.second_step, args.pace)
+                        for d, v in paths]
                 ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
                 n = ms.size
                 where = "in a worker thread" if background else "in the calling thread"
+                where += f", updates at {args.pace:g} Hz" if args.pace > 0 else ""
                 print(f"  {kind}: ROM update, refresh {where}: "
                       f"median {np.median(ms):.3f} ms, mean {ms.mean():.3f}, p99 {np.percentile(ms, 99):.3f}, max "
                       f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "

@@ -350,15 +350,14 @@ def evaluate(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarra
 
 
 @numba.njit(**_JIT)
-def _hessian(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, hz, hm):
+def _point_stiffness(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, df, dw, hm):
+    """``D_p A_p`` of every sampled point into rows ``6 p .. 6 p + 5`` of ``df`` (the ``fmap`` columns) and
+    ``dw`` (the ``wmap`` columns), ``D_p`` the weighted stiffness of ``F`` at the point (zero at monitor
+    points); and ``h_m`` (see :func:`hessian`)."""
     np_, _, nc = fmap.shape
     nw = wmap.shape[2]
-    k = nc + nw
-    hz[:, :] = 0.0
     hm[:, :] = 0.0
     f = np.empty(6)
-    a = np.empty((6, k))
-    da = np.empty((6, k))
     d = np.empty((6, 6))
     b = np.zeros((3, 6))
     h = np.empty((3, 3))
@@ -366,13 +365,10 @@ def _hessian(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, hz, hm):
     t = np.empty(6)
     for p in range(np_):
         w = xi[p]
-        if w == 0.0:
+        if w == 0.0:  # a monitor point: not summed
+            df[6 * p:6 * p + 6] = 0.0
+            dw[6 * p:6 * p + 6] = 0.0
             continue
-        for c in range(6):
-            for j in range(nc):
-                a[c, j] = fmap[p, c, j]
-            for j in range(nw):
-                a[c, nc + j] = wmap[p, c, j]
         u = unit[p]
         km = maxwell[u] if u >= 0 else 0.0
         c0, c1, c2, det, xv, dy, g0, g1, g2 = _state(fmap, p, z, f, c10, c20, c30, km)
@@ -407,30 +403,35 @@ def _hessian(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, hz, hm):
             d[2 * i + 1, 2 * i + 1] += w * s11
             d[2 * i, 2 * i + 1] += w * s01
             d[2 * i + 1, 2 * i] += w * s01
-        # D A and the upper triangle of A^T D A; the innermost loops run along a row (vector instructions)
-        for c in range(6):
+        for c in range(6):  # the rows of D A (innermost loops along a row: vector instructions)
             d0, d1, d2, d3, d4, d5 = d[c, 0], d[c, 1], d[c, 2], d[c, 3], d[c, 4], d[c, 5]
-            for j in range(k):
-                da[c, j] = d0 * a[0, j] + d1 * a[1, j] + d2 * a[2, j] + d3 * a[3, j] + d4 * a[4, j] + d5 * a[5, j]
-        for i in range(k):
-            a0, a1, a2, a3, a4, a5 = a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i]
-            for j in range(i, k):
-                hz[i, j] += (a0 * da[0, j] + a1 * da[1, j] + a2 * da[2, j] + a3 * da[3, j] + a4 * da[4, j]
-                             + a5 * da[5, j])
+            r = 6 * p + c
+            for j in range(nc):
+                df[r, j] = (d0 * fmap[p, 0, j] + d1 * fmap[p, 1, j] + d2 * fmap[p, 2, j] + d3 * fmap[p, 3, j]
+                            + d4 * fmap[p, 4, j] + d5 * fmap[p, 5, j])
+            for j in range(nw):
+                dw[r, j] = (d0 * wmap[p, 0, j] + d1 * wmap[p, 1, j] + d2 * wmap[p, 2, j] + d3 * wmap[p, 3, j]
+                            + d4 * wmap[p, 4, j] + d5 * wmap[p, 5, j])
         if u >= 0:  # ddet/dF = c1 dc0/dF + c0 dc1/dF - 2 c2 dc2/dF
             for c in range(6):
                 t[c] = -w * (c1 * b[0, c] + c0 * b[1, c] - 2.0 * c2 * b[2, c])
-            for j in range(k):
-                hm[j, u] += t[0] * a[0, j] + t[1] * a[1, j] + t[2] * a[2, j] + t[3] * a[3, j] + t[4] * a[4, j] \
-                    + t[5] * a[5, j]
-    for i in range(k):
-        for j in range(i):
-            hz[i, j] = hz[j, i]
+            for j in range(nc):
+                hm[j, u] += (t[0] * fmap[p, 0, j] + t[1] * fmap[p, 1, j] + t[2] * fmap[p, 2, j]
+                             + t[3] * fmap[p, 3, j] + t[4] * fmap[p, 4, j] + t[5] * fmap[p, 5, j])
+            for j in range(nw):
+                hm[nc + j, u] += (t[0] * wmap[p, 0, j] + t[1] * wmap[p, 1, j] + t[2] * wmap[p, 2, j]
+                                  + t[3] * wmap[p, 3, j] + t[4] * wmap[p, 4, j] + t[5] * wmap[p, 5, j])
 
 
 def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, z: np.ndarray,
             maxwell: np.ndarray, yeoh: Yeoh, n_units: int) -> tuple[np.ndarray, np.ndarray]:
     """Hessian of the hyper-reduced energy over ``[1, d, q, w]`` and its mixed ``m`` derivatives.
+
+    ``H = sum_p A_p^T D_p A_p`` as matrix products of the stacked point maps ``A`` (6 rows
+    per point) and ``D A`` (:func:`_point_stiffness`), in the maps' precision (the
+    products' rounding: ~1e-7 of the largest entry with float32 maps).  The products are
+    BLAS's: a per-point rank-6 update of the whole ``H`` streamed it from memory once per
+    point (57 ms on the 200-mode 4-by-4 against 14 ms for the products on one core).
 
     Returns
     -------
@@ -439,9 +440,18 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
     h_m : ndarray, shape (nc + nw, n_units)
         ``d2E/dz_j dm_u``.
     """
-    k = fmap.shape[2] + wmap.shape[2]
-    hz, hm = np.empty((k, k)), np.empty((k, n_units))
-    _hessian(fmap, wmap, xi, unit, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, hz, hm)
+    n, nc, nw = fmap.shape[0], fmap.shape[2], wmap.shape[2]
+    df, dw = np.empty((6 * n, nc), fmap.dtype), np.empty((6 * n, nw), wmap.dtype)
+    hm = np.empty((nc + nw, n_units))
+    _point_stiffness(fmap, wmap, xi, unit, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, df, dw, hm)
+    a_f, a_w = fmap.reshape(6 * n, nc), wmap.reshape(6 * n, nw)
+    hz = np.empty((nc + nw, nc + nw))
+    hz[:nc, :nc] = np.triu(a_f.T @ df)
+    hz[:nc, :nc] += np.triu(hz[:nc, :nc], 1).T  # exactly symmetric
+    hz[:nc, nc:] = a_f.T @ dw
+    hz[nc:, :nc] = hz[:nc, nc:].T
+    hz[nc:, nc:] = np.triu(a_w.T @ dw)
+    hz[nc:, nc:] += np.triu(hz[nc:, nc:], 1).T
     return hz, hm
 
 

@@ -103,6 +103,29 @@ def test_compiled_reduced_hessian_equals_the_numpy_reference_and_the_gradient_di
     np.testing.assert_allclose(hm[1:, 1], fd[1:], rtol=1e-5, atol=1e-7 * np.abs(hm).max())
 
 
+def test_reduced_hessian_skips_monitor_points_and_keeps_its_accuracy_from_float32_maps(reduced_points):
+    """Points of weight 0 (monitor points) add nothing; float32 maps (reduced_twin.MAP_DTYPE) give the
+    float64 maps' Hessian to the products' rounding, ~1e-7 of the largest entry (bound 1e-6), exactly
+    symmetric."""
+    model, fmap, wmap, xi, unit = reduced_points
+    z = np.array([1.0, 0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.2])
+    maxwell = np.array([2e4, 3e4, 0.0])
+    monitor = xi.copy()
+    monitor[::7] = 0.0
+    hz, hm = rom_kernels.hessian(fmap, wmap, monitor, unit, z, maxwell, model.yeoh, 3)
+    live = monitor > 0
+    hz_ref, hm_ref = rom_kernels.hessian_reference(fmap[live], wmap[live], monitor[live], unit[live], z, maxwell,
+                                                   model.yeoh, 3)
+    assert np.abs(hz - hz_ref).max() <= 1e-12 * np.abs(hz_ref).max()
+    assert np.abs(hm - hm_ref).max() <= 1e-12 * np.abs(hm_ref).max()
+    hz32, hm32 = rom_kernels.hessian(fmap.astype(np.float32), wmap.astype(np.float32), xi, unit, z, maxwell,
+                                     model.yeoh, 3)
+    hz64, hm64 = rom_kernels.hessian(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3)
+    assert hz32.dtype == np.float64 and np.array_equal(hz32, hz32.T)
+    assert 0 < np.abs(hz32 - hz64).max() <= 1e-6 * np.abs(hz64).max()
+    assert np.abs(hm32 - hm64).max() <= 1e-6 * np.abs(hm64).max()
+
+
 def _tangent_reference(hz, hm, nd, r, cap_factor, output_scale):
     """The update's matrices from the reduced Hessian, by numpy (inverse, products, pinv)."""
     q, dsl, w = slice(1 + nd, 1 + nd + r), slice(1, 1 + nd), slice(1 + nd + r, None)
