@@ -349,6 +349,48 @@ def evaluate(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarra
                      grad, grad_m, grad_w, det_max)
 
 
+@numba.njit(inline="always", **_JIT)
+def _stiffness(fmap, p, z, w, u, maxwell, c10, c20, c30, f, b, h, bh, d, t):
+    """The weighted stiffness of ``F`` at point ``p`` (weight ``w``, unit ``u``) into ``d`` (6 x 6) and, for a
+    point on a unit (``u >= 0``), ``t = -w ddet/dF`` (the ``m`` derivative of the stress)."""
+    km = maxwell[u] if u >= 0 else 0.0
+    c0, c1, c2, det, xv, dy, g0, g1, g2 = _state(fmap, p, z, f, c10, c20, c30, km)
+    ddy = 2.0 * c20 + 6.0 * c30 * xv
+    inv2 = 1.0 / det**2
+    # H = d2Psi/dc2 (material.energy_derivatives)
+    dj0, dj1, dj2 = c1, c0, -2.0 * c2
+    di0, di1, di2 = 1.0 - inv2 * dj0, 1.0 - inv2 * dj1, -inv2 * dj2
+    bb = 2.0 * dy * inv2 / det
+    mm = dy * inv2 + km
+    h[0, 0] = ddy * di0 * di0 + bb * dj0 * dj0
+    h[1, 1] = ddy * di1 * di1 + bb * dj1 * dj1
+    h[2, 2] = ddy * di2 * di2 + bb * dj2 * dj2 + 2.0 * mm
+    h[0, 1] = h[1, 0] = ddy * di0 * di1 + bb * dj0 * dj1 - mm
+    h[0, 2] = h[2, 0] = ddy * di0 * di2 + bb * dj0 * dj2
+    h[1, 2] = h[2, 1] = ddy * di1 * di2 + bb * dj1 * dj2
+    # B = dc/dF, columns 2 i + alpha
+    for i in range(3):
+        b[0, 2 * i] = 2.0 * f[2 * i]
+        b[1, 2 * i + 1] = 2.0 * f[2 * i + 1]
+        b[2, 2 * i] = f[2 * i + 1]
+        b[2, 2 * i + 1] = f[2 * i]
+    s00, s11, s01 = 2.0 * g0, 2.0 * g1, g2
+    for c in range(6):  # D = w (B^T H B + S (x) I_3)
+        for x in range(3):
+            bh[c, x] = b[0, c] * h[0, x] + b[1, c] * h[1, x] + b[2, c] * h[2, x]
+    for c in range(6):
+        for e in range(6):
+            d[c, e] = w * (bh[c, 0] * b[0, e] + bh[c, 1] * b[1, e] + bh[c, 2] * b[2, e])
+    for i in range(3):
+        d[2 * i, 2 * i] += w * s00
+        d[2 * i + 1, 2 * i + 1] += w * s11
+        d[2 * i, 2 * i + 1] += w * s01
+        d[2 * i + 1, 2 * i] += w * s01
+    if u >= 0:  # ddet/dF = c1 dc0/dF + c0 dc1/dF - 2 c2 dc2/dF
+        for c in range(6):
+            t[c] = -w * (c1 * b[0, c] + c0 * b[1, c] - 2.0 * c2 * b[2, c])
+
+
 @numba.njit(**_JIT)
 def _point_stiffness(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, df, dw, hm):
     """``D_p A_p`` of every sampled point into rows ``6 p .. 6 p + 5`` of ``df`` (the ``fmap`` columns) and
@@ -357,52 +399,14 @@ def _point_stiffness(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, df, dw, hm
     np_, _, nc = fmap.shape
     nw = wmap.shape[2]
     hm[:, :] = 0.0
-    f = np.empty(6)
-    d = np.empty((6, 6))
-    b = np.zeros((3, 6))
-    h = np.empty((3, 3))
-    bh = np.empty((6, 3))
-    t = np.empty(6)
+    f, b, h, bh, d, t = np.empty(6), np.zeros((3, 6)), np.empty((3, 3)), np.empty((6, 3)), np.empty((6, 6)), np.empty(6)
     for p in range(np_):
-        w = xi[p]
+        w, u = xi[p], unit[p]
         if w == 0.0:  # a monitor point: not summed
             df[6 * p:6 * p + 6] = 0.0
             dw[6 * p:6 * p + 6] = 0.0
             continue
-        u = unit[p]
-        km = maxwell[u] if u >= 0 else 0.0
-        c0, c1, c2, det, xv, dy, g0, g1, g2 = _state(fmap, p, z, f, c10, c20, c30, km)
-        ddy = 2.0 * c20 + 6.0 * c30 * xv
-        inv2 = 1.0 / det**2
-        # H = d2Psi/dc2 (material.energy_derivatives)
-        dj0, dj1, dj2 = c1, c0, -2.0 * c2
-        di0, di1, di2 = 1.0 - inv2 * dj0, 1.0 - inv2 * dj1, -inv2 * dj2
-        bb = 2.0 * dy * inv2 / det
-        mm = dy * inv2 + km
-        h[0, 0] = ddy * di0 * di0 + bb * dj0 * dj0
-        h[1, 1] = ddy * di1 * di1 + bb * dj1 * dj1
-        h[2, 2] = ddy * di2 * di2 + bb * dj2 * dj2 + 2.0 * mm
-        h[0, 1] = h[1, 0] = ddy * di0 * di1 + bb * dj0 * dj1 - mm
-        h[0, 2] = h[2, 0] = ddy * di0 * di2 + bb * dj0 * dj2
-        h[1, 2] = h[2, 1] = ddy * di1 * di2 + bb * dj1 * dj2
-        # B = dc/dF, columns 2 i + alpha
-        for i in range(3):
-            b[0, 2 * i] = 2.0 * f[2 * i]
-            b[1, 2 * i + 1] = 2.0 * f[2 * i + 1]
-            b[2, 2 * i] = f[2 * i + 1]
-            b[2, 2 * i + 1] = f[2 * i]
-        s00, s11, s01 = 2.0 * g0, 2.0 * g1, g2
-        for c in range(6):  # D = w (B^T H B + S (x) I_3)
-            for x in range(3):
-                bh[c, x] = b[0, c] * h[0, x] + b[1, c] * h[1, x] + b[2, c] * h[2, x]
-        for c in range(6):
-            for e in range(6):
-                d[c, e] = w * (bh[c, 0] * b[0, e] + bh[c, 1] * b[1, e] + bh[c, 2] * b[2, e])
-        for i in range(3):
-            d[2 * i, 2 * i] += w * s00
-            d[2 * i + 1, 2 * i + 1] += w * s11
-            d[2 * i, 2 * i + 1] += w * s01
-            d[2 * i + 1, 2 * i] += w * s01
+        _stiffness(fmap, p, z, w, u, maxwell, c10, c20, c30, f, b, h, bh, d, t)
         for c in range(6):  # the rows of D A (innermost loops along a row: vector instructions)
             d0, d1, d2, d3, d4, d5 = d[c, 0], d[c, 1], d[c, 2], d[c, 3], d[c, 4], d[c, 5]
             r = 6 * p + c
@@ -412,9 +416,7 @@ def _point_stiffness(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, df, dw, hm
             for j in range(nw):
                 dw[r, j] = (d0 * wmap[p, 0, j] + d1 * wmap[p, 1, j] + d2 * wmap[p, 2, j] + d3 * wmap[p, 3, j]
                             + d4 * wmap[p, 4, j] + d5 * wmap[p, 5, j])
-        if u >= 0:  # ddet/dF = c1 dc0/dF + c0 dc1/dF - 2 c2 dc2/dF
-            for c in range(6):
-                t[c] = -w * (c1 * b[0, c] + c0 * b[1, c] - 2.0 * c2 * b[2, c])
+        if u >= 0:
             for j in range(nc):
                 hm[j, u] += (t[0] * fmap[p, 0, j] + t[1] * fmap[p, 1, j] + t[2] * fmap[p, 2, j]
                              + t[3] * fmap[p, 3, j] + t[4] * fmap[p, 4, j] + t[5] * fmap[p, 5, j])
@@ -423,15 +425,57 @@ def _point_stiffness(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, df, dw, hm
                                   + t[3] * wmap[p, 3, j] + t[4] * wmap[p, 4, j] + t[5] * wmap[p, 5, j])
 
 
+@numba.njit(**_JIT)
+def _hessian(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, hz, hm):
+    """:func:`hessian` without BLAS: the upper triangle of ``A_p^T D_p A_p`` added to ``hz`` point by point."""
+    np_, _, nc = fmap.shape
+    nw = wmap.shape[2]
+    k = nc + nw
+    hz[:, :] = 0.0
+    hm[:, :] = 0.0
+    a, da = np.empty((6, k)), np.empty((6, k))
+    f, b, h, bh, d, t = np.empty(6), np.zeros((3, 6)), np.empty((3, 3)), np.empty((6, 3)), np.empty((6, 6)), np.empty(6)
+    for p in range(np_):
+        w, u = xi[p], unit[p]
+        if w == 0.0:
+            continue
+        for c in range(6):
+            for j in range(nc):
+                a[c, j] = fmap[p, c, j]
+            for j in range(nw):
+                a[c, nc + j] = wmap[p, c, j]
+        _stiffness(fmap, p, z, w, u, maxwell, c10, c20, c30, f, b, h, bh, d, t)
+        # D A and the upper triangle of A^T D A; the innermost loops run along a row (vector instructions)
+        for c in range(6):
+            d0, d1, d2, d3, d4, d5 = d[c, 0], d[c, 1], d[c, 2], d[c, 3], d[c, 4], d[c, 5]
+            for j in range(k):
+                da[c, j] = d0 * a[0, j] + d1 * a[1, j] + d2 * a[2, j] + d3 * a[3, j] + d4 * a[4, j] + d5 * a[5, j]
+        for i in range(k):
+            a0, a1, a2, a3, a4, a5 = a[0, i], a[1, i], a[2, i], a[3, i], a[4, i], a[5, i]
+            for j in range(i, k):
+                hz[i, j] += (a0 * da[0, j] + a1 * da[1, j] + a2 * da[2, j] + a3 * da[3, j] + a4 * da[4, j]
+                             + a5 * da[5, j])
+        if u >= 0:
+            for j in range(k):
+                hm[j, u] += t[0] * a[0, j] + t[1] * a[1, j] + t[2] * a[2, j] + t[3] * a[3, j] + t[4] * a[4, j] \
+                    + t[5] * a[5, j]
+    for i in range(k):
+        for j in range(i):
+            hz[i, j] = hz[j, i]
+
+
 def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, z: np.ndarray,
-            maxwell: np.ndarray, yeoh: Yeoh, n_units: int) -> tuple[np.ndarray, np.ndarray]:
+            maxwell: np.ndarray, yeoh: Yeoh, n_units: int, blas: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Hessian of the hyper-reduced energy over ``[1, d, q, w]`` and its mixed ``m`` derivatives.
 
-    ``H = sum_p A_p^T D_p A_p`` as matrix products of the stacked point maps ``A`` (6 rows
-    per point) and ``D A`` (:func:`_point_stiffness`), in the maps' precision (the
-    products' rounding: ~1e-7 of the largest entry with float32 maps).  The products are
-    BLAS's: a per-point rank-6 update of the whole ``H`` streamed it from memory once per
-    point (57 ms on the 200-mode 4-by-4 against 14 ms for the products on one core).
+    ``H = sum_p A_p^T D_p A_p``.  With ``blas``, matrix products of the stacked point maps
+    ``A`` (6 rows per point) and ``D A`` (:func:`_point_stiffness`) in the maps' precision
+    (the products' rounding: ~1e-7 of the largest entry with float32 maps): 14 ms on one
+    core for the 200-mode 4-by-4.  Without, a compiled rank-6 update of ``H`` per point
+    (:func:`_hessian`; 57 ms there, where ``H`` streams from memory once per point; the same
+    on small ROMs), on the calling thread alone.  The products run on the process's BLAS
+    threads, and OpenBLAS's helper threads then spin for ~0.1 s: a process refreshing every
+    few tens of ms keeps a core busy (docs/rom.md), what a real-time process cannot afford.
 
     Returns
     -------
@@ -441,6 +485,10 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
         ``d2E/dz_j dm_u``.
     """
     n, nc, nw = fmap.shape[0], fmap.shape[2], wmap.shape[2]
+    if not blas:
+        hz, hm = np.empty((nc + nw, nc + nw)), np.empty((nc + nw, n_units))
+        _hessian(fmap, wmap, xi, unit, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, hz, hm)
+        return hz, hm
     df, dw = np.empty((6 * n, nc), fmap.dtype), np.empty((6 * n, nw), wmap.dtype)
     hm = np.empty((nc + nw, n_units))
     _point_stiffness(fmap, wmap, xi, unit, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, df, dw, hm)

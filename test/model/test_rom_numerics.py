@@ -78,15 +78,18 @@ def test_reduced_gradient_is_the_derivative_of_the_reduced_energy(reduced_points
     assert np.abs(grad_m).max() > 0 and np.abs(grad_w).max() > 0
 
 
-def test_compiled_reduced_hessian_equals_the_numpy_reference_and_the_gradient_difference(reduced_points):
+@pytest.mark.parametrize("blas", [True, False])
+def test_compiled_reduced_hessian_equals_the_numpy_reference_and_the_gradient_difference(reduced_points, blas):
+    """Both ways of summing the points (BLAS products, a rank-6 update per point)."""
     model, fmap, wmap, xi, unit = reduced_points
     held = np.zeros(xi.size, dtype=bool)
     z = np.array([1.0, 0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.2])
     maxwell = np.array([2e4, 3e4, 0.0])
-    hz, hm = rom_kernels.hessian(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3)
+    hz, hm = rom_kernels.hessian(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3, blas)
     hz_ref, hm_ref = rom_kernels.hessian_reference(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3)
     assert np.abs(hz - hz_ref).max() <= 1e-12 * np.abs(hz_ref).max()
     assert np.abs(hm - hm_ref).max() <= 1e-12 * np.abs(hm_ref).max()
+    assert np.array_equal(hz, hz.T)
 
     def gradient(zz, mm):
         out = (np.empty(8), np.empty(3), np.empty(3), np.empty(3))
@@ -104,20 +107,21 @@ def test_compiled_reduced_hessian_equals_the_numpy_reference_and_the_gradient_di
 
 
 def test_reduced_hessian_skips_monitor_points_and_keeps_its_accuracy_from_float32_maps(reduced_points):
-    """Points of weight 0 (monitor points) add nothing; float32 maps (reduced_twin.MAP_DTYPE) give the
-    float64 maps' Hessian to the products' rounding, ~1e-7 of the largest entry (bound 1e-6), exactly
-    symmetric."""
+    """Points of weight 0 (monitor points) add nothing (both ways of summing); float32 maps
+    (reduced_twin.MAP_DTYPE) give the float64 maps' Hessian to the BLAS products' rounding, ~1e-7 of the
+    largest entry (bound 1e-6), exactly symmetric."""
     model, fmap, wmap, xi, unit = reduced_points
     z = np.array([1.0, 0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.2])
     maxwell = np.array([2e4, 3e4, 0.0])
     monitor = xi.copy()
     monitor[::7] = 0.0
-    hz, hm = rom_kernels.hessian(fmap, wmap, monitor, unit, z, maxwell, model.yeoh, 3)
     live = monitor > 0
     hz_ref, hm_ref = rom_kernels.hessian_reference(fmap[live], wmap[live], monitor[live], unit[live], z, maxwell,
                                                    model.yeoh, 3)
-    assert np.abs(hz - hz_ref).max() <= 1e-12 * np.abs(hz_ref).max()
-    assert np.abs(hm - hm_ref).max() <= 1e-12 * np.abs(hm_ref).max()
+    for blas in (True, False):
+        hz, hm = rom_kernels.hessian(fmap, wmap, monitor, unit, z, maxwell, model.yeoh, 3, blas)
+        assert np.abs(hz - hz_ref).max() <= 1e-12 * np.abs(hz_ref).max()
+        assert np.abs(hm - hm_ref).max() <= 1e-12 * np.abs(hm_ref).max()
     hz32, hm32 = rom_kernels.hessian(fmap.astype(np.float32), wmap.astype(np.float32), xi, unit, z, maxwell,
                                      model.yeoh, 3)
     hz64, hm64 = rom_kernels.hessian(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from dea_array_twin import ArrayTwin
-from dea_array_twin.model import reduced_twin
+from dea_array_twin.model import reduced_twin, rom_kernels
 from dea_array_twin.model.reduced import Envelope, ReducedModel, RomMismatchError
 from dea_array_twin.model.reduced_twin import ReducedTwin
 from dea_array_twin.model.rom_build import Snapshots
@@ -99,6 +99,38 @@ def test_point_maps_in_float32_move_the_outputs_by_their_round_off_only(cfg, rom
     assert np.abs(c32 / c64 - 1.0).max() <= 1e-5
     assert (e32, r32) == (e64, r64)
     assert np.abs(f32 - f64).max() > 0.0  # the float32 maps were used
+
+
+def test_a_real_time_twin_computes_its_hessians_without_blas(cfg, rom, monkeypatch):
+    """With ``background_refresh`` (a control loop's twin) every Hessian, the worker's and the calling
+    thread's (a cold start, a stability check), is summed point by point: no BLAS product, after which
+    OpenBLAS's helper thread would spin on the core beside the updates (the 1-by-3 ROM node at 1 kHz:
+    1.1 cores instead of 0.35, docs/rom.md).  Without it, every Hessian is BLAS products; both twins
+    answer the same to 1e-9 of the largest force."""
+    calls = []
+
+    def recorded(*args, blas=True):
+        calls.append(blas)
+        return rom_kernels.hessian(*args, blas=blas)
+
+    monkeypatch.setattr(reduced_twin, "hessian", recorded)
+    results = {}
+    for background in (False, True):
+        twin = ReducedTwin(cfg, rom, background_refresh=background)
+        try:
+            out = []
+            for i in range(30):
+                if twin._pending is not None:
+                    twin._pending.result(timeout=60)
+                out.append(twin.solve([0.002, 0.004, 0.006] + 1e-4 * i * np.array([1.0, 1.0, -1.0]),
+                                      [0.0, 500.0, 1500.0] + 20.0 * i * np.array([0.0, 1.0, 1.0]),
+                                      check_stability=i == 15))
+        finally:
+            twin.close()
+        results[background], used = np.array([r.force for r in out]), set(calls)
+        assert calls and used == {not background}, (background, calls)
+        calls.clear()
+    np.testing.assert_allclose(results[True], results[False], rtol=0, atol=1e-9 * np.abs(results[False]).max())
 
 
 def test_energy_consistent_force_and_capacitance_are_derivatives_of_the_reduced_energy(cfg, rom):
