@@ -87,6 +87,12 @@ MAX_HEIGHT_ITERATIONS = 8
 #: update took half the time, and forces and capacitances moved by ~1e-7 of their values (the
 #: maps' rounding, 6e-8), four orders below a ROM's tolerance (docs/rom.md).
 MAP_DTYPE = np.float32
+#: Columns of the reduced Hessian (``[1, d, q, w]``) from which the refreshes of a twin without
+#: ``background_refresh`` are BLAS products (:func:`.rom_kernels.hessian`).  Measured: 1-by-3, 51
+#: columns, 0.4 -> 0.3 ms, not worth the BLAS helper thread that then spins beside the process (a
+#: library loop's CPU per update went from 0.05 to 0.14 ms); 4-by-4, 173 columns 30 -> 7.3 ms, 273
+#: columns 57 -> 14 ms.
+BLAS_COLUMNS = 128
 
 
 def _recover(reference: np.ndarray, vectors: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -200,8 +206,8 @@ class ReducedTwin:
         the calling thread.  A real-time twin's Hessians use no BLAS (summed point by
         point on the thread that asks: no BLAS helper thread left spinning on the core
         beside the updates, :func:`.rom_kernels.hessian`); without ``background_refresh``
-        they are BLAS products, four times faster on a large ROM.  :meth:`close` stops
-        the thread.
+        a large ROM's (:data:`BLAS_COLUMNS`) are BLAS products, four times faster.
+        :meth:`close` stops the thread.
 
     Attributes
     ----------
@@ -272,6 +278,7 @@ class ReducedTwin:
         self.second_step = float(second_step if second_step is not None else min(1e-3, self.tolerance))
         self.refresh_distance = refresh_distance
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="rom-tangent") if background_refresh else None
+        self._blas = not background_refresh and self._nc + rom.enrichment.shape[1] >= BLAS_COLUMNS
         self._refresh_step = refresh_distance * self._range
         self.fallbacks: Counter = Counter()
         self.updates = self.evaluations = self.refreshes = self.resyncs = 0
@@ -364,7 +371,7 @@ class ReducedTwin:
     def _tangent_of(self, z: np.ndarray, maxwell: np.ndarray) -> tuple[_Tangent, np.ndarray]:
         """The tangent at ``(z, maxwell)`` and where it was taken (reads no mutable state: thread-safe)."""
         hz, hm = hessian(self._fmap, self._wmap, self._xi, self._unit, z, maxwell, self.model.yeoh, self.n_units,
-                         blas=self._pool is None)
+                         blas=self._blas)
         return _Tangent(self, hz, hm), np.concatenate([z[1:1 + self._nd], maxwell])
 
     def _refresh(self, z: np.ndarray, maxwell: np.ndarray) -> _Tangent:

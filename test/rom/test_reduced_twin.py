@@ -105,8 +105,11 @@ def test_a_real_time_twin_computes_its_hessians_without_blas(cfg, rom, monkeypat
     """With ``background_refresh`` (a control loop's twin) every Hessian, the worker's and the calling
     thread's (a cold start, a stability check), is summed point by point: no BLAS product, after which
     OpenBLAS's helper thread would spin on the core beside the updates (the 1-by-3 ROM node at 1 kHz:
-    1.1 cores instead of 0.35, docs/rom.md).  Without it, every Hessian is BLAS products; both twins
-    answer the same to 1e-9 of the largest force."""
+    1.1 cores instead of 0.35, docs/rom.md).  Without it, a large ROM's Hessians are BLAS products; both
+    twins answer the same to 1e-9 of the largest force.  (The coarse ROM is small: it gets the products only
+    with ``BLAS_COLUMNS`` lowered; by default a small ROM's Hessian is summed point by point too.)"""
+    assert not ReducedTwin(cfg, rom)._blas
+    monkeypatch.setattr(reduced_twin, "BLAS_COLUMNS", 1)
     calls = []
 
     def recorded(*args, blas=True):
