@@ -200,7 +200,7 @@ class TwinNode(Node):
                                    period=1.0 / self.update_rate if self.update_rate > 0 else 0.0,
                                    dynamics_dt=self.dynamics_dt,
                                    take_commands=self._take_commands if self.commands_taken_by_solver else None,
-                                   background_checks=isinstance(twin, ArrayTwin))
+                                   background_checks=True)
         check_rate = declare_number(self, "fe_check_rate", 1.0,
                                     "model rom: FE re-solves of the latest command per second, in a background "
                                     "thread (difference in /diagnostics, resync above the ROM's tolerance); 0 = off")

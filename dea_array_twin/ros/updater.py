@@ -171,7 +171,8 @@ class TwinUpdater:
         holds the commands it saw, and they must be posted as they come).
     background_checks : bool
         Check stability in the twin's worker thread
-        (:meth:`~dea_array_twin.model.twin.ArrayTwin.check_in_background`) after an
+        (:meth:`~dea_array_twin.model.twin.ArrayTwin.check_in_background`,
+        :meth:`~dea_array_twin.model.reduced_twin.ReducedTwin.check_in_background`) after an
         unchecked update instead of in the update itself, unless a unit is biased (its
         check needs the bordered tangent: the update checks itself); an update whose state
         the twin cannot check there after all has the next update checked in it.

@@ -136,6 +136,26 @@ def test_a_real_time_twin_computes_its_hessians_without_blas(cfg, rom, monkeypat
     np.testing.assert_allclose(results[True], results[False], rtol=0, atol=1e-9 * np.abs(results[False]).max())
 
 
+def test_a_background_check_gives_the_verdict_of_a_checked_solve(cfg, rom):
+    """``check_in_background`` judges the state the last solve left, in the worker thread: the verdict a
+    checked solve of the same command gives; None without a worker, before a reduced state and after an
+    FE answer (the node then checks in the next update)."""
+    twin = ReducedTwin(cfg, rom, background_refresh=True)
+    try:
+        assert ReducedTwin(cfg, rom).check_in_background() is None
+        assert twin.check_in_background() is None
+        for d, v in (([0.002, 0.004, 0.006], [0.0, 500.0, 1500.0]), ([0.007, 0.001, 0.005], [0.0, 2400.0, 0.0])):
+            twin.solve(d, v)
+            verdict = twin.check_in_background()
+            checked = ReducedTwin(cfg, rom).solve(d, v, check_stability=True)
+            assert checked.fallback == "" and checked.stable is not None
+            assert verdict.result(timeout=60) is checked.stable
+        assert twin.solve([0.002, 0.012, 0.004], [0.0, 1000.0, 0.0]).fallback.startswith("envelope")
+        assert twin.check_in_background() is None
+    finally:
+        twin.close()
+
+
 def test_energy_consistent_force_and_capacitance_are_derivatives_of_the_reduced_energy(cfg, rom):
     """F_k = dE/dd_k (paper eq. 10 as the derivative of the reduced energy at equilibrium) and
     C_u = -(eps/t0^2) dE/dm_u with m_u = eps V_u^2 / (2 t0^2) (eq. 7), by central differences of

@@ -28,6 +28,8 @@ def test_node_with_a_rom_answers_within_its_tolerance_and_publishes_the_fe_check
         h.send_displacement(d)
         h.wait_for("unit_states", lambda m: m.position[1] == pytest.approx(0.005), timeout=60)
         status, values = _diag(h, lambda kv: int(kv.get("fe_checks", 0)) >= 1 and kv.get("model") == "rom")
+        # the stability check, judged in the reduced twin's worker thread (check_in_background)
+        _diag(h, lambda kv: kv.get("stable") == "True" and float(kv.get("stability_checked_s_ago", "inf")) < 5.0)
         force = h.messages("force")[-1]
         cap = h.messages("capacitance")[-1]
         # outside the envelope (deeper than trained): the FE answers and the node counts it
