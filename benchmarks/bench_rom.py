@@ -177,6 +177,7 @@ def main_node(rom_file: str, seconds: float, check_rate: float, priority: int = 
 
     from dea_array_twin.ros.testing import TwinHarness
 
+    rom_file = os.path.abspath(rom_file)  # the node runs from this checkout (below)
     rate = 1000.0
     params = {"update_rate": rate, "marker_rate": 0.0, "model": "rom", "rom_file": str(rom_file),
               "fe_check_rate": check_rate, "realtime_priority": priority}
@@ -188,6 +189,9 @@ def main_node(rom_file: str, seconds: float, check_rate: float, priority: int = 
         from dea_array_twin.ros.realtime import use_fifo
 
         use_fifo(priority)
+    # The node process (python -m) imports from its working directory first: run it from this checkout, so
+    # that the node measured is this file's code, whichever directory the benchmark was started from.
+    os.chdir(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     with TwinHarness(parameters=params, process=True) as h:
         h.send_voltage([1000.0] * 3)
         start = time.monotonic()
