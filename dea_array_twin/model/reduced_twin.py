@@ -72,7 +72,7 @@ from .config import BIASED, DRIVEN, ArrayConfig
 from .dynamics import NewmarkStep
 from .reduced import ReducedModel, RomMismatchError, check_config
 from .rom_build import held_elements
-from .rom_kernels import classify, evaluate, heights, hessian, point_maps, reduced_tangent, update
+from .rom_kernels import classify, combine, evaluate, heights, hessian, point_maps, project, reduced_tangent, update
 from .solver import ConvergenceError, NewtonSettings, SolveCancelled
 from .twin import ArrayTwin, TwinResult
 
@@ -97,7 +97,7 @@ BLAS_COLUMNS = 128
 
 def _recover(reference: np.ndarray, vectors: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Full positions (n_nodes, 3) [m] of reduced coefficients ``z`` over ``[lift, basis]``."""
-    return (reference + vectors @ z).reshape(-1, 3)
+    return combine(reference, vectors, z).reshape(-1, 3)
 
 
 @dataclass(frozen=True, init=False)
@@ -471,7 +471,7 @@ class ReducedTwin:
         z = self._z.copy()
         driven = d[self._driven]
         z[1:1 + self._nd] = driven
-        z[1 + self._nd:] = self.rom.basis.T @ (x - self.rom.reference - self.rom.lift @ driven)
+        z[1 + self._nd:] = project(self.rom.basis, x - combine(self.rom.reference, self.rom.lift, driven))
         self._z, self._maxwell = z, self._maxwell_factor * v * v
         self._projected = self._cold = True
 

@@ -172,3 +172,12 @@ def test_compiled_reduced_tangent_equals_inverse_sensitivities_and_indicator_by_
         np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-10 * np.abs(want).max(), err_msg=name)
     if case == "singular Schur complement":
         assert np.isfinite(arrays[4]).all() and np.abs(arrays[4]).max() < 1e3 * np.abs(hz).max()
+
+
+def test_combine_and_project_are_the_matrix_vector_products():
+    """The field from reduced coordinates and the coordinates of a field, on the calling thread (no BLAS
+    threads): numpy's products to round-off."""
+    rng = np.random.default_rng(7)
+    vectors, base, z, x = rng.normal(size=(3001, 37)), rng.normal(size=3001), rng.normal(size=37), rng.normal(size=3001)
+    np.testing.assert_allclose(rom_kernels.combine(base, vectors, z), base + vectors @ z, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(rom_kernels.project(vectors, x), vectors.T @ x, rtol=1e-12, atol=1e-11)
