@@ -287,10 +287,13 @@ def main() -> None:
                                                         + (f", dt {DT:g} s)" if kind == "dynamic" else ")")))
         errors = [compare(cfg, rom, d, v, kind, args.second_step) for d, v in paths]
         force, cap, position, fe_ms, flagged = (np.concatenate([e[i] for e in errors]) for i in range(5))
+        over = np.maximum(force.max(axis=1), cap.max(axis=1)) > rom.tolerance
         print(f"  errors against the FE's warm updates: force max {force.max():.4%} mean {force.mean():.5%}; "
               f"capacitance max {cap.max():.4%} mean {cap.mean():.5%}; position max {position.max() * 1e6:.3g} um; "
               f"FE warm update median {np.median(fe_ms):.2f} ms; indicator above the tolerance on "
-              f"{int(flagged.sum())} of {flagged.size} updates (the FE would answer those)")
+              f"{int(flagged.sum())} of {flagged.size} updates (the FE would answer those); "
+              f"{int(over.sum())} update(s) with an error above the tolerance, {int((over & ~flagged).sum())} "
+              f"of them not flagged")
     for round_ in range(1, args.rounds + 1):  # the kinds' timings interleaved, round after round
         print(f" timing, round {round_} of {args.rounds}")
         for kind in kinds:
