@@ -74,7 +74,7 @@ from .reduced import ReducedModel, RomMismatchError, check_config
 from .rom_build import held_elements
 from .rom_kernels import classify, combine, evaluate, heights, hessian, point_maps, project, reduced_tangent, update
 from .solver import ConvergenceError, NewtonSettings, SolveCancelled
-from .twin import ArrayTwin, TwinResult
+from .twin import ArrayTwin, TwinResult, verdict_of
 
 #: Why the FE answered an update (:attr:`ReducedTwin.fallbacks`' keys, as ``result.fallback`` starts).
 FALLBACKS = ("envelope", "indicator", "newton", "snap", "contact")
@@ -413,16 +413,7 @@ class ReducedTwin:
         job = self._pool.submit(self._tangent_of, self._z.copy(), self._maxwell.copy())
         if self._pending is None:
             self._pending = job
-        verdict: Future = Future()
-
-        def judged(done: Future) -> None:  # in the worker thread
-            if done.exception() is not None:
-                verdict.set_exception(done.exception())
-            else:
-                verdict.set_result(bool(done.result()[0].stable))
-
-        job.add_done_callback(judged)
-        return verdict
+        return verdict_of(job, lambda done: bool(done[0].stable))
 
     def _collect_refresh(self) -> int:
         """Install a background refresh that has finished (returns 1 if one was)."""

@@ -517,7 +517,7 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
     Returns
     -------
     h : ndarray, shape (nc + nw, nc + nw)
-        ``d2E/dz_i dz_j`` (row and column 0, the constant, are zero).
+        ``d2E/dz_i dz_j`` (row and column 0 are those of the constant ``z_0 = 1``: never read).
     h_m : ndarray, shape (nc + nw, n_units)
         ``d2E/dz_j dm_u``.
     """

@@ -73,6 +73,21 @@ BACKGROUND_ITERATIONS = 3
 BACKGROUND_FACTOR_THREADS = 1
 
 
+def verdict_of(job: Future, judge: Callable[[object], bool | None]) -> Future:
+    """A future of ``judge(result of job)``, set by the thread that finishes ``job`` (its exception passed on):
+    a stability check's verdict from a tangent computed in a worker thread."""
+    verdict: Future = Future()
+
+    def judged(done: Future) -> None:
+        if done.exception() is not None:
+            verdict.set_exception(done.exception())
+        else:
+            verdict.set_result(judge(done.result()))
+
+    job.add_done_callback(judged)
+    return verdict
+
+
 @dataclass(frozen=True)
 class TwinResult:
     """One equilibrium of the array and everything known about it (SI units).
@@ -484,17 +499,7 @@ class ArrayTwin:
         job = self._tangent_job()
         if self._pending is None:
             self._pending, self._pending_over = job, self.solver.factorisation
-        verdict: Future = Future()
-
-        def judged(done: Future) -> None:  # in the worker thread
-            if done.exception() is not None:
-                verdict.set_exception(done.exception())
-            else:
-                negative = done.result().negative_pivots
-                verdict.set_result(None if negative < 0 else negative == 0)
-
-        job.add_done_callback(judged)
-        return verdict
+        return verdict_of(job, lambda fact: None if fact.negative_pivots < 0 else fact.negative_pivots == 0)
 
     def _collect_tangent(self) -> None:
         """Start from a finished background tangent if the solver still has the one it was to replace."""

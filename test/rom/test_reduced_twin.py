@@ -136,20 +136,29 @@ def test_a_real_time_twin_computes_its_hessians_without_blas(cfg, rom, monkeypat
     np.testing.assert_allclose(results[True], results[False], rtol=0, atol=1e-9 * np.abs(results[False]).max())
 
 
-def test_a_background_check_gives_the_verdict_of_a_checked_solve(cfg, rom):
+def test_a_background_check_gives_the_verdict_of_a_checked_solve(cfg, rom, monkeypatch):
     """``check_in_background`` judges the state the last solve left, in the worker thread: the verdict a
-    checked solve of the same command gives; None without a worker, before a reduced state and after an
-    FE answer (the node then checks in the next update)."""
+    checked solve of the same command gives, from the Hessian at that state (which becomes the next
+    refresh); a Hessian made negative definite gives False.  None without a worker, before a reduced
+    state and after an FE answer (the node then checks in the next update)."""
     twin = ReducedTwin(cfg, rom, background_refresh=True)
     try:
         assert ReducedTwin(cfg, rom).check_in_background() is None
         assert twin.check_in_background() is None
         for d, v in (([0.002, 0.004, 0.006], [0.0, 500.0, 1500.0]), ([0.007, 0.001, 0.005], [0.0, 2400.0, 0.0])):
             twin.solve(d, v)
+            if twin._pending is not None:
+                twin._pending.result(timeout=60)
+                twin._collect_refresh()
             verdict = twin.check_in_background()
             checked = ReducedTwin(cfg, rom).solve(d, v, check_stability=True)
-            assert checked.fallback == "" and checked.stable is not None
-            assert verdict.result(timeout=60) is checked.stable
+            assert checked.fallback == "" and checked.stable is True
+            assert verdict.result(timeout=60) is True
+            _, at = twin._pending.result()
+            np.testing.assert_allclose(at, np.concatenate([d, twin._maxwell_factor * np.square(v)]), rtol=1e-12)
+        monkeypatch.setattr(reduced_twin, "hessian", lambda *args, **kw: tuple(-h for h in rom_kernels.hessian(
+            *args, **kw)))
+        assert twin.check_in_background().result(timeout=60) is False
         assert twin.solve([0.002, 0.012, 0.004], [0.0, 1000.0, 0.0]).fallback.startswith("envelope")
         assert twin.check_in_background() is None
     finally:
