@@ -243,6 +243,8 @@ def main() -> None:
     parser.add_argument("--pace", type=float, default=0.0,
                         help="time the updates at this rate [Hz], as a control loop runs them (default 0: back to "
                              "back)")
+    parser.add_argument("--edges", type=float, default=0.0,
+                        help="share of the training commands stretched towards the envelope's bounds (default 0)")
     parser.add_argument("--rom", help="use this trained ROM file instead of training")
     parser.add_argument("--save", help="write the trained ROM here")
     parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
@@ -265,7 +267,7 @@ def main() -> None:
                                 (0.0, cfg.hv_voltage()))
         tic = time.perf_counter()
         result = train(cfg, envelope, args.snapshots, args.modes, args.tolerance, args.validation,
-                       workers=args.workers, say=lambda text: print(f"  {text}", flush=True))
+                       workers=args.workers, edges=args.edges, say=lambda text: print(f"  {text}", flush=True))
         rom = result.rom
         print(f"training: {time.perf_counter() - tic:.0f} s wall with {args.workers} worker(s) "
               f"(FE snapshots {result.timings['snapshots_s']:.0f} s, {result.timings['snapshots_cpu_s']:.0f} CPU s; "

@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--unit-modes", type=word_list,
                        help="per-unit mode, 'driven' or 'free', comma separated (default: the config's "
                             "unit_modes)")
+    train.add_argument("--edges", type=float, default=0.0,
+                       help="share of the training commands drawn with the Chebyshev density, dense near the "
+                            "envelope's bounds (default 0: all uniform, Latin hypercube)")
     train.add_argument("--seed", type=int, default=0,
                        help="sampling seed (validation uses seed + 1, calibration seed + 2)")
     where = train.add_mutually_exclusive_group()
@@ -85,7 +88,9 @@ def summary_lines(rom: ReducedModel) -> list[str]:
         calibrated = (f"scaled by {rom.indicator_scale:.3g}, calibrated on {facts['calibration_commands']} commands"
                       if facts.get("calibration_commands") else "raw, not calibrated")
         lines += [
-            f"training: {facts['snapshots']} snapshots ({facts['snapshot_failures']} failed) in "
+            f"training: {facts['snapshots']} snapshots ({facts['snapshot_failures']} failed"
+            + (f"; {facts['edges']:.0%} of the commands dense at the envelope's bounds" if facts.get("edges") else "")
+            + ") in "
             f"{t.get('snapshots_s', float('nan')):.0f} s ({t.get('snapshots_cpu_s', float('nan')):.0f} CPU s); "
             f"basis + hyper-reduction {t.get('build_s', float('nan')):.0f} s (ECSW error "
             f"{facts['hr_relative_error']:.1e} on {facts['hr_snapshots']} snapshots)",
@@ -127,6 +132,8 @@ def run_from_args(args: argparse.Namespace) -> int:
                 raise ConfigError(f"--{name} must be >= 1, got {getattr(args, name)}")
         if args.calibration is not None and args.calibration < 0:
             raise ConfigError(f"--calibration must be >= 0, got {args.calibration}")
+        if not 0 <= args.edges <= 1:
+            raise ConfigError(f"--edges must be a share in [0, 1], got {args.edges}")
         if not 0 < args.tolerance < 1:
             raise ConfigError(f"--tolerance must be in (0, 1), got {args.tolerance}")
         envelope = _envelope(cfg, args)
@@ -147,7 +154,8 @@ def run_from_args(args: argparse.Namespace) -> int:
         tic = time.perf_counter()
         result = train(cfg, envelope, args.snapshots, args.modes, args.tolerance, args.validation, args.seed,
                        args.workers, args.scheduler, progress,
-                       lambda text: print(f"dea-twin rom: {text}", file=sys.stderr), args.calibration)
+                       lambda text: print(f"dea-twin rom: {text}", file=sys.stderr), args.calibration,
+                       args.edges)
         path = save_rom(result.rom, out)
     except (ConfigError, ValueError, ExecutorError, OSError) as exc:
         print(f"dea-twin rom: error: {exc}", file=sys.stderr)

@@ -133,14 +133,22 @@ class Envelope:
                     f"[{self.voltage_min[u]:.6g}, {self.voltage_max[u]:.6g}] V")
         return None
 
-    def sample(self, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    def sample(self, n: int, seed: int, edges: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """``n`` commands spread over the envelope (Latin hypercube): displacements (n, n_units) [m], voltages [V].
 
-        Free units get displacement 0 (ignored by the model).
+        Free units get displacement 0 (ignored by the model).  The last ``edges`` share of the
+        commands (0 to 1) has its coordinates stretched towards the bounds, ``(1 - cos(pi u)) / 2``
+        (the Chebyshev density, 2.9 times as many values within 5 % of a bound as a uniform sample):
+        the corners of the box, a unit at a bound among neighbours at theirs, are where a uniform
+        sample of many inputs is thinnest (``docs/rom.md``).
         """
+        if not 0.0 <= edges <= 1.0:
+            raise ValueError(f"edges must be a share in [0, 1], got {edges}")
         k = self.driven
         dims = k.size + self.n_units
         unit = qmc.LatinHypercube(d=dims, seed=seed).random(n)
+        stretched = np.arange(n) >= n - round(edges * n)
+        unit[stretched] = 0.5 * (1.0 - np.cos(np.pi * unit[stretched]))
         d = np.zeros((n, self.n_units))
         d[:, k] = self.displacement_min[k] + unit[:, :k.size] * (self.displacement_max[k] - self.displacement_min[k])
         v = self.voltage_min + unit[:, k.size:] * (self.voltage_max - self.voltage_min)

@@ -201,7 +201,8 @@ class TrainingResult:
 def train(cfg: ArrayConfig, envelope: Envelope, n_snapshots: int = 240, n_modes: int = 30,
           tolerance: float = 1e-3, n_validation: int = 60, seed: int = 0, workers: int = 1,
           scheduler: str | None = None, progress: Progress | None = None,
-          say: Callable[[str], None] | None = None, n_calibration: int | None = None) -> TrainingResult:
+          say: Callable[[str], None] | None = None, n_calibration: int | None = None,
+          edges: float = 0.0) -> TrainingResult:
     """Sample, solve, build and validate a ROM of ``cfg`` over ``envelope`` (see the module docstring).
 
     Parameters
@@ -209,6 +210,9 @@ def train(cfg: ArrayConfig, envelope: Envelope, n_snapshots: int = 240, n_modes:
     n_snapshots, n_validation : int
         Training and held-out commands (independent Latin hypercube samples, seeds
         ``seed`` and ``seed + 1``).
+    edges : float
+        Share of the training commands stretched towards the envelope's bounds
+        (:meth:`Envelope.sample`; the calibration and held-out commands stay uniform).
     n_calibration : int, optional
         Commands that calibrate the error indicator (:func:`indicator_scale`; seed
         ``seed + 2``); default ``n_validation``, 0 keeps the raw indicator.
@@ -227,7 +231,7 @@ def train(cfg: ArrayConfig, envelope: Envelope, n_snapshots: int = 240, n_modes:
     report = progress or (lambda stage, done, total: None)
     timings = {}
     tic = time.perf_counter()
-    d, v = envelope.sample(n_snapshots, seed)
+    d, v = envelope.sample(n_snapshots, seed, edges)
     snaps, failures, cpu = solve_snapshots(cfg, envelope.modes, d, v, workers, scheduler,
                                            lambda done: report("snapshots", done, n_snapshots))
     timings.update(snapshots_s=time.perf_counter() - tic, snapshots_cpu_s=cpu)
@@ -256,6 +260,7 @@ def train(cfg: ArrayConfig, envelope: Envelope, n_snapshots: int = 240, n_modes:
     timings["validation_rom_s"] = time.perf_counter() - tic
     facts = dict(rom.validation, **validation.table(tolerance), timings=timings,
                  calibration_commands=n_calibration - len(calibration_failures), snapshot_failures=len(failures),
-                 validation_failures=len(held_failures) + len(calibration_failures), seed=seed)
+                 validation_failures=len(held_failures) + len(calibration_failures), seed=seed,
+                 edges=edges)
     rom = dataclasses.replace(rom, validation=facts)
     return TrainingResult(rom, validation, failures + calibration_failures + held_failures, timings)

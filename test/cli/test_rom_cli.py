@@ -15,7 +15,7 @@ def test_rom_train_writes_a_validated_rom_of_the_config_and_info_shows_it(coarse
     out = tmp_path / "small.npz"
     code = main(["rom", "train", str(coarse_yaml), "--out", str(out), "--snapshots", "8", "--modes", "5",
                  "--validation", "3", "--displacement-range", "0,0.004", "--voltage-range", "0,1000",
-                 "--unit-modes", "free,driven,free", "--tolerance", "0.05", "--calibration", "4"])
+                 "--unit-modes", "free,driven,free", "--tolerance", "0.05", "--calibration", "4", "--edges", "0.5"])
     printed = capsys.readouterr().out
     assert code == 0, printed
     rom = load_rom(out, load_config(coarse_yaml))
@@ -31,6 +31,7 @@ def test_rom_train_writes_a_validated_rom_of_the_config_and_info_shows_it(coarse
     captured = capsys.readouterr()
     info = captured.out
     assert rom.config_hash in info and "5 POD modes" in info and "8 snapshots" in info
+    assert table["edges"] == 0.5 and "50% of the commands dense at the envelope's bounds" in info
     assert table["calibration_commands"] == 4 and f"scaled by {rom.indicator_scale:.3g}, calibrated on 4" in info
     assert "warning" not in captured.err
     loose = dataclasses.replace(rom, validation=dict(table, capacitance_error_max=0.08, over_tolerance=1,
@@ -46,6 +47,8 @@ def test_rom_train_refuses_bad_options_and_rom_info_a_missing_file(tmp_path, cap
     assert "max_displacement" in capsys.readouterr().err
     assert main(["rom", "train", "--out", str(tmp_path / "x.npz"), "--calibration", "-1"]) == 2
     assert "--calibration must be >= 0" in capsys.readouterr().err
+    assert main(["rom", "train", "--out", str(tmp_path / "x.npz"), "--edges", "1.5"]) == 2
+    assert "--edges must be a share in [0, 1]" in capsys.readouterr().err
     assert main(["rom", "train", "--out", str(tmp_path / "no" / "x.npz")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert main(["rom", "info", str(tmp_path / "missing.npz")]) == 2

@@ -370,3 +370,28 @@ def test_warm_up_leaves_the_reduced_twin_as_a_new_one(cfg, rom):
     np.testing.assert_array_equal(a.force, b.force)
     np.testing.assert_array_equal(a.capacitance, b.capacitance)
     assert (warmed.updates, warmed.evaluations) == (fresh.updates, fresh.evaluations)
+
+
+def test_an_edges_share_of_the_sample_is_dense_at_the_bounds_and_the_rest_is_the_uniform_sample():
+    env = Envelope(("driven", "free", "driven"), np.zeros(3), np.full(3, 0.01), np.zeros(3), np.full(3, 2000.0))
+    n = 400
+    d0, v0 = env.sample(n, 5)
+    d, v = env.sample(n, 5, edges=0.5)
+    np.testing.assert_array_equal(d[:200], d0[:200])  # the uniform share is the plain sample's ...
+    np.testing.assert_array_equal(v[:200], v0[:200])
+    stretch = lambda x, hi: 0.5 * (1 - np.cos(np.pi * x / hi)) * hi  # noqa: E731
+    np.testing.assert_allclose(d[200:], stretch(d0[200:], 0.01), rtol=0, atol=1e-15)  # ... the rest stretched
+    np.testing.assert_allclose(v[200:], stretch(v0[200:], 2000.0), rtol=0, atol=1e-9)
+    assert np.all(d[:, 1] == 0.0) and np.all((d >= 0) & (d <= 0.01)) and np.all((v >= 0) & (v <= 2000.0))
+
+    def near_bounds(x, hi):  # share of the values within 5 % of the range from a bound
+        return np.mean((x < 0.05 * hi) | (x > 0.95 * hi))
+
+    # a Latin hypercube has one value per 1/n stratum of each input, so the shares are exact to 2/n:
+    # uniform 0.1; Chebyshev 2 acos(0.9) / pi = 0.2871
+    d1, v1 = env.sample(n, 5, edges=1.0)
+    for x, hi, share in ((d0[:, [0, 2]], 0.01, 0.1), (v0, 2000.0, 0.1),
+                         (d1[:, [0, 2]], 0.01, 2 * np.arccos(0.9) / np.pi), (v1, 2000.0, 2 * np.arccos(0.9) / np.pi)):
+        assert near_bounds(x, hi) == pytest.approx(share, abs=2 / n)
+    with pytest.raises(ValueError, match="edges"):
+        env.sample(n, 5, edges=1.5)
