@@ -2,7 +2,7 @@
 
 Run:  .venv/bin/python benchmarks/bench_rom.py [--size 1x3|4x4] [--snapshots N] [--modes R]
                                                [--validation N] [--workers N] [--rom FILE] [--save FILE]
-                                               [--pace HZ] [--second-step S]
+                                               [--pace HZ] [--second-step S] [--against FILE ...]
       .venv/bin/python benchmarks/bench_rom.py --rom FILE --node SECONDS [--fe-check-rate HZ]
                                                [--realtime-priority P]
 
@@ -33,13 +33,17 @@ Targets (issue 15): 1x3 <= 0.1 % force and capacitance error, <= 0.1 ms per upda
 the node at 1 kHz holding >= 99 % of its ticks; 4x4 <= 0.5 ms per update.
 ``--second-step X`` runs the paths with ``ReducedTwin(..., second_step=X)`` (the output change of
 a first correction above which an update evaluates a second time).  ``--rom FILE`` reuses a
-trained ROM (its stored validation table is printed; held-out commands are not re-solved).
+trained ROM (its stored validation table is printed; held-out commands are not re-solved);
+``--against FILE ...`` times other ROMs of the same config in turn with it, round after round,
+in this process (between processes the spread of the medians, 15-50 % here, hides differences
+that one process shows; their errors: a ``--rom`` run of each).
 Not a test: numbers for the notes, with the machine's load (``uptime``) printed next to them.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import time
 
@@ -247,6 +251,8 @@ def main() -> None:
                         help="share of the training commands stretched towards the envelope's bounds (default 0)")
     parser.add_argument("--rom", help="use this trained ROM file instead of training")
     parser.add_argument("--save", help="write the trained ROM here")
+    parser.add_argument("--against", nargs="+", default=[], metavar="FILE",
+                        help="with --rom: other ROM files of the config, timed in turn with it in every round")
     parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
     parser.add_argument("--fe-check-rate", type=float, default=1.0, help="--node: FE checks per second (default 1)")
     parser.add_argument("--realtime-priority", type=int, default=0,
@@ -257,6 +263,8 @@ def main() -> None:
             parser.error("--node needs --rom")
         main_node(args.rom, args.node, args.fe_check_rate, args.realtime_priority)
         return
+    if args.against and not args.rom:
+        parser.error("--against needs --rom")
     rows, cols = (int(n) for n in args.size.split("x"))
     cfg = grid(rows, cols)
     print(f"dea_array_twin ROM benchmark: {args.size}, default mesh; {load()} on {os.cpu_count()} cores")
@@ -296,22 +304,23 @@ def main() -> None:
               f"{int(flagged.sum())} of {flagged.size} updates (the FE would answer those); "
               f"{int(over.sum())} update(s) with an error above the tolerance, {int((over & ~flagged).sum())} "
               f"of them not flagged")
-    for round_ in range(1, args.rounds + 1):  # the kinds' timings interleaved, round after round
+    timed = [(args.rom, rom)] + [(name, load_rom(name, cfg)) for name in args.against]
+    for round_ in range(1, args.rounds + 1):  # the kinds' (and ROMs') timings interleaved, round after round
         print(f" timing, round {round_} of {args.rounds}")
-        for kind in kinds:
-            for background in (False, True):
-                runs = [time_updates(cfg, rom, d, v, background, kind, args.second_step, args.pace)
-                        for d, v in paths]
-                ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
-                n = ms.size
-                where = "in a worker thread" if background else "in the calling thread"
-                where += f", updates at {args.pace:g} Hz" if args.pace > 0 else ""
-                print(f"  {kind}: ROM update, refresh {where}: "
-                      f"median {np.median(ms):.3f} ms, mean {ms.mean():.3f}, p99 {np.percentile(ms, 99):.3f}, max "
-                      f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "
-                      f"{sum(r[2]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
-                      f"{sum(r[2]['refreshes'] for r in runs)} refreshes, {sum(r[2]['fallbacks'] for r in runs)} "
-                      f"fallbacks in {n} updates; {load()}")
+        for kind, (name, timed_rom), background in itertools.product(kinds, timed, (False, True)):
+            runs = [time_updates(cfg, timed_rom, d, v, background, kind, args.second_step, args.pace)
+                    for d, v in paths]
+            ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
+            n = ms.size
+            where = "in a worker thread" if background else "in the calling thread"
+            where += f", updates at {args.pace:g} Hz" if args.pace > 0 else ""
+            which = f" [{os.path.basename(name)}]" if args.against else ""
+            print(f"  {kind}{which}: ROM update, refresh {where}: "
+                  f"median {np.median(ms):.3f} ms, mean {ms.mean():.3f}, p99 {np.percentile(ms, 99):.3f}, max "
+                  f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "
+                  f"{sum(r[2]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
+                  f"{sum(r[2]['refreshes'] for r in runs)} refreshes, {sum(r[2]['fallbacks'] for r in runs)} "
+                  f"fallbacks in {n} updates; {load()}")
 
 
 if __name__ == "__main__":
