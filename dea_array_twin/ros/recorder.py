@@ -15,7 +15,9 @@ it does waits for the twin, and the twin never waits for it:
   so a burst waits in DDS instead of being dropped; their callbacks only append to an
   in-memory queue;
 * a writer thread takes that queue in batches, writes, and closes the open chunk at
-  least once a second (a killed node loses at most the last second).
+  least once a second (a killed node loses at most the last second);
+* closing takes what DDS still holds for the subscriptions before the file is finished, so
+  a command that arrived just before Ctrl-C is in the recording.
 
 Counts for the node's diagnostics: messages written, messages dropped (DDS reports of
 lost samples, plus the in-memory queue refusing more than :data:`BACKLOG_LIMIT`
@@ -125,9 +127,10 @@ class TopicRecorder:
                               use_global_arguments=False, start_parameter_services=False)
             qos_yaml = default_qos_yaml(reliable=True, depth=10)
             self._subs = {}
+            self._cids = {}
             for topic, type_name in RECORDED_TOPICS.items():
                 resolved = node.resolve_topic_name(topic)  # namespace, remaps
-                cid = self.writer.add_topic(resolved, type_name, qos_yaml)
+                cid = self._cids[topic] = self.writer.add_topic(resolved, type_name, qos_yaml)
                 reliability = ReliabilityPolicy.BEST_EFFORT if topic.startswith("command/") \
                     else ReliabilityPolicy.RELIABLE
                 qos = QoSProfile(depth=QUEUE_DEPTH.get(topic, DEFAULT_DEPTH), reliability=reliability)
@@ -189,6 +192,20 @@ class TopicRecorder:
             except ExternalShutdownException:
                 return
 
+    def _drain(self) -> None:
+        """Queue what DDS already holds for the subscriptions: a message that arrived just before the
+        close (while the executor thread was busy, or after a signal had shut the context down, which
+        stops the executor but not a take) is recorded, not left behind."""
+        if self.error:
+            return
+        for topic, sub in self._subs.items():
+            try:
+                with sub.handle:
+                    while (taken := sub.handle.take_message(sub.msg_type, sub.raw)) is not None:
+                        self._receive(self._cids[topic], taken[0])
+            except Exception:  # noqa: BLE001 - the subscription is gone already; the file matters
+                continue
+
     # ------------------------------------------------------------------ writing (writer thread)
     def _write_loop(self) -> None:
         last_flush = time.monotonic()
@@ -218,6 +235,7 @@ class TopicRecorder:
         self._stopping.set()
         if self._spin_thread.is_alive():
             self._spin_thread.join()
+        self._drain()
         try:
             self._executor.remove_node(self._node)
             self._node.destroy_node()

@@ -46,7 +46,7 @@ from typing import Any, Callable
 
 import rclpy
 from rclpy.context import Context
-from rclpy.duration import Duration
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -135,8 +135,11 @@ class TwinHarness:
                                           namespace=self.namespace or None)
                 self.executor.add_node(self.twin_node)
             self.executor.add_node(self.node)
-            self._pubs = {kind: self.node.create_publisher(Float64MultiArray, self.topic(f"command/{kind}"),
-                                                           HARNESS_QOS) for kind in COMMAND_KINDS}
+            self._matched = dict.fromkeys(COMMAND_KINDS, 0)
+            self._pubs = {kind: self.node.create_publisher(
+                Float64MultiArray, self.topic(f"command/{kind}"), HARNESS_QOS,
+                event_callbacks=PublisherEventCallbacks(matched=lambda info, k=kind: self._on_matched(k, info)))
+                for kind in COMMAND_KINDS}
             for name, msg_type in _output_types().items():
                 self.node.create_subscription(msg_type, self.topic(name),
                                               lambda m, n=name: self._store(n, m), HARNESS_QOS)
@@ -165,7 +168,7 @@ class TwinHarness:
 
     def _commands_reach_the_twin(self) -> bool:
         """Our publishers have matched every subscription of the twin (the node's and the recorder's) to
-        each command topic, on our side: discovery is not symmetric, and a reliable message reaches only
+        each command topic, on our side: discovery is not symmetric, and a message reaches only
         the subscriptions its publisher has matched."""
         for kind in COMMAND_KINDS:
             if self.twin_node is not None:
@@ -276,15 +279,17 @@ class TwinHarness:
         self._pubs[kind].publish(Float64MultiArray(data=[float(v) for v in values]))
         self.sent[kind] += 1
 
-    def command_subscribers(self, kind: str) -> int:
-        """Subscriptions to ``command/<kind>`` the harness's publisher has matched (its side of discovery)."""
-        return self._pubs[kind].get_subscription_count()
+    def _on_matched(self, kind: str, info) -> None:
+        self._matched[kind] = info.current_count
 
-    def commands_acknowledged(self, kind: str, timeout: float = 30.0) -> bool:
-        """Whether every subscription the ``command/<kind>`` publisher has matched acknowledged all it sent,
-        within ``timeout`` [s] (reliable QoS: a subscriber that finished discovery late gets a sample
-        only at the publisher's next heartbeat, seconds on)."""
-        return self._pubs[kind].wait_for_all_acked(Duration(seconds=timeout))
+    def command_subscribers(self, kind: str) -> int:
+        """Subscriptions to ``command/<kind>`` the harness's publisher has matched (its side of discovery).
+
+        The DDS writer's matched status (its ``matched`` event), not the ROS graph's count
+        (``get_subscription_count``), which knows a subscription from discovery before the writer
+        has matched it: a sample published in between never reaches a best-effort subscription
+        (the recorder's), and nothing resends it."""
+        return self._matched[kind]
 
     def send_displacement(self, values) -> None:
         """Publish a displacement command [m], one value per unit."""
