@@ -428,6 +428,11 @@ def _stiffness(fmap, p, z, w, u, maxwell, c10, c20, c30, f, b, h, bh, d, t):
             t[c] = -w * (c1 * b[0, c] + c0 * b[1, c] - 2.0 * c2 * b[2, c])
 
 
+#: Rows of ``H`` per matrix product in :func:`hessian`: the upper triangle of ``k`` panels costs
+#: ``(k + 1) / 2k`` of the full product.
+PANEL = 32
+
+
 @numba.njit(**_JIT)
 def _point_stiffness(fmap, wmap, xi, unit, z, maxwell, c10, c20, c30, df, dw, hm):
     """``D_p A_p`` of every sampled point into rows ``6 p .. 6 p + 5`` of ``df`` (the ``fmap`` columns) and
@@ -507,8 +512,9 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
 
     ``H = sum_p A_p^T D_p A_p``.  With ``blas``, matrix products of the stacked point maps
     ``A`` (6 rows per point) and ``D A`` (:func:`_point_stiffness`) in the maps' precision
-    (the products' rounding: ~1e-7 of the largest entry with float32 maps): 14 ms on one
-    core for the 200-mode 4-by-4.  Without, a compiled rank-6 update of ``H`` per point
+    (the products' rounding: ~1e-7 of the largest entry with float32 maps), the ``[1, d, q]``
+    block's upper triangle only, by row panels of :data:`PANEL` columns (the full product
+    costs twice its flops): 14 ms on one core for the 200-mode 4-by-4 with full products.  Without, a compiled rank-6 update of ``H`` per point
     (:func:`_hessian`; 57 ms there, where ``H`` streams from memory once per point; the same
     on small ROMs), on the calling thread alone.  The products run on the process's BLAS
     threads, and OpenBLAS's helper threads then spin for ~0.1 s: a process refreshing every
@@ -531,7 +537,10 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
     _point_stiffness(fmap, wmap, xi, unit, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30, df, dw, hm)
     a_f, a_w = fmap.reshape(6 * n, nc), wmap.reshape(6 * n, nw)
     hz = np.empty((nc + nw, nc + nw))
-    hz[:nc, :nc] = np.triu(a_f.T @ df)
+    for i in range(0, nc, PANEL):  # the upper triangle by row panels (whole diagonal panels)
+        j = min(i + PANEL, nc)
+        hz[i:j, i:nc] = a_f[:, i:j].T @ df[:, i:]
+    hz[:nc, :nc] = np.triu(hz[:nc, :nc])
     hz[:nc, :nc] += np.triu(hz[:nc, :nc], 1).T  # exactly symmetric
     hz[:nc, nc:] = a_f.T @ dw
     hz[nc:, :nc] = hz[:nc, nc:].T
@@ -563,23 +572,31 @@ def _cholesky(a):
 
 @numba.njit(**_JIT)
 def _inverse_from_cholesky(lower, out):
-    """``out = (L L^T)^-1 = L^-T L^-1`` from the lower factor ``L``."""
+    """``out = (L L^T)^-1 = L^-T L^-1`` from the lower factor ``L``.
+
+    Row-oriented (every inner loop runs along a row: contiguous, vector instructions):
+    the rows of ``L^-1`` by forward substitution, then ``L^-T L^-1`` as a sum of the
+    rows' outer products, upper triangle then mirrored."""
     n = lower.shape[0]
     linv = np.zeros((n, n))
-    for j in range(n):  # column j of L^-1: forward substitution on e_j
-        linv[j, j] = 1.0 / lower[j, j]
-        for i in range(j + 1, n):
-            s = 0.0
-            for k in range(j, i):
-                s -= lower[i, k] * linv[k, j]
-            linv[i, j] = s / lower[i, i]
+    for i in range(n):  # row i of L^-1: (e_i - sum_k<i L_ik row_k) / L_ii
+        linv[i, i] = 1.0
+        for k in range(i):
+            c = lower[i, k]
+            for j in range(k + 1):
+                linv[i, j] -= c * linv[k, j]
+        d = 1.0 / lower[i, i]
+        for j in range(i + 1):
+            linv[i, j] *= d
+    out[:, :] = 0.0
+    for k in range(n):  # out += row_k^T row_k (row k of L^-1 is zero beyond k)
+        for i in range(k + 1):
+            c = linv[k, i]
+            for j in range(i, k + 1):
+                out[i, j] += c * linv[k, j]
     for i in range(n):
-        for j in range(i, n):
-            s = 0.0
-            for k in range(j, n):
-                s += linv[k, i] * linv[k, j]
-            out[i, j] = s
-            out[j, i] = s
+        for j in range(i):
+            out[i, j] = out[j, i]
 
 
 @numba.njit(**_JIT)
@@ -609,28 +626,31 @@ def _reduce_tangent(hz, hm, nd, cap_factor, output_scale, sensitivity, hqq_inv, 
             out_q[i, j] = hz[1 + i, q0 + j] if i < nd else -cap_factor * hm[q0 + j, i - nd]
         for j in range(nw):
             out_w[i, j] = hz[1 + i, nc + j] if i < nd else -cap_factor * hm[nc + j, i - nd]
+    # The products below run along rows (contiguous): the q rows of [H_qp, H_qw] gathered first.
+    hqp = np.empty((r, no + nw))  # [H_qd, H_qm, H_qw]
+    for k in range(r):
+        for j in range(no + nw):
+            hqp[k, j] = hz[q0 + k, 1 + j] if j < nd else (hm[q0 + k, j - nd] if j < no else hz[q0 + k, nc + j - no])
+    y = np.zeros((r, no + nw))  # H_qq^-1 [H_qp, H_qw]
+    for i in range(r):
+        for k in range(r):
+            c = hqq_inv[i, k]
+            for j in range(no + nw):
+                y[i, j] += c * hqp[k, j]
     for i in range(r):  # dq/dp = -H_qq^-1 H_qp, p = (d, m)
         for j in range(no):
-            acc = 0.0
-            for k in range(r):
-                acc -= hqq_inv[i, k] * (hz[q0 + k, 1 + j] if j < nd else hm[q0 + k, j - nd])
-            sensitivity[i, j] = acc
-    x = np.empty((r, nw))  # H_qq^-1 H_qw
-    for i in range(r):
-        for j in range(nw):
-            acc = 0.0
-            for k in range(r):
-                acc += hqq_inv[i, k] * hz[q0 + k, nc + j]
-            x[i, j] = acc
+            sensitivity[i, j] = -y[i, j]
+    x = y[:, no:]  # H_qq^-1 H_qw
     schur = np.empty((nw, nw))  # S = H_ww - H_wq H_qq^-1 H_qw
     for i in range(nw):
         for j in range(r):
             h_wq[i, j] = hz[nc + i, q0 + j]
         for j in range(nw):
-            acc = hz[nc + i, nc + j]
-            for k in range(r):
-                acc -= hz[nc + i, q0 + k] * x[k, j]
-            schur[i, j] = acc
+            schur[i, j] = hz[nc + i, nc + j]
+        for k in range(r):
+            c = h_wq[i, k]
+            for j in range(nw):
+                schur[i, j] -= c * x[k, j]
     for i in range(nw):  # symmetric to rounding: make it exactly so for eigh
         for j in range(i):
             schur[i, j] = schur[j, i] = 0.5 * (schur[i, j] + schur[j, i])
@@ -638,13 +658,12 @@ def _reduce_tangent(hz, hm, nd, cap_factor, output_scale, sensitivity, hqq_inv, 
     cutoff = 1e-12 * np.abs(values).max()
     for j in range(nw):
         values[j] = 1.0 / values[j] if abs(values[j]) > cutoff else 0.0
-    m = np.empty((no, nw))  # H_oq H_qq^-1 H_qw - H_ow
+    m = -out_w  # H_oq H_qq^-1 H_qw - H_ow
     for i in range(no):
-        for j in range(nw):
-            acc = -out_w[i, j]
-            for k in range(r):
-                acc += out_q[i, k] * x[k, j]
-            m[i, j] = acc
+        for k in range(r):
+            c = out_q[i, k]
+            for j in range(nw):
+                m[i, j] += c * x[k, j]
     mv = m @ vectors
     for i in range(no):
         for j in range(nw):

@@ -106,6 +106,20 @@ def test_compiled_reduced_hessian_equals_the_numpy_reference_and_the_gradient_di
     np.testing.assert_allclose(hm[1:, 1], fd[1:], rtol=1e-5, atol=1e-7 * np.abs(hm).max())
 
 
+def test_reduced_hessian_by_panels_of_its_upper_triangle_equals_the_reference(reduced_points, monkeypatch):
+    """The BLAS products by row panels (here 3 columns: two whole panels and a partial one over the 8
+    columns) give the reference Hessian, exactly symmetric."""
+    model, fmap, wmap, xi, unit = reduced_points
+    monkeypatch.setattr(rom_kernels, "PANEL", 3)
+    z = np.array([1.0, 0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.2])
+    maxwell = np.array([2e4, 3e4, 0.0])
+    hz, _ = rom_kernels.hessian(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3)
+    hz_ref, _ = rom_kernels.hessian_reference(fmap, wmap, xi, unit, z, maxwell, model.yeoh, 3)
+    assert fmap.shape[2] > 2 * rom_kernels.PANEL
+    assert np.abs(hz - hz_ref).max() <= 1e-12 * np.abs(hz_ref).max()
+    assert np.array_equal(hz, hz.T)
+
+
 def test_reduced_hessian_skips_monitor_points_and_keeps_its_accuracy_from_float32_maps(reduced_points):
     """Points of weight 0 (monitor points) add nothing (both ways of summing); float32 maps
     (reduced_twin.MAP_DTYPE) give the float64 maps' Hessian to the BLAS products' rounding, ~1e-7 of the
