@@ -514,9 +514,10 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
     ``A`` (6 rows per point) and ``D A`` (:func:`_point_stiffness`) in the maps' precision
     (the products' rounding: ~1e-7 of the largest entry with float32 maps), the ``[1, d, q]``
     block's upper triangle only, by row panels of :data:`PANEL` columns (the full product
-    costs twice its flops): 14 ms on one core for the 200-mode 4-by-4 with full products.  Without, a compiled rank-6 update of ``H`` per point
-    (:func:`_hessian`; 57 ms there, where ``H`` streams from memory once per point; the same
-    on small ROMs), on the calling thread alone.  The products run on the process's BLAS
+    costs twice its flops; 200-mode 4-by-4: 4.5-4.9 ms for the block against 5.5 ms, ~9-12 ms
+    in all).  Without, a compiled rank-6 update of ``H`` per point (:func:`_hessian`; 57 ms
+    there, where ``H`` streams from memory once per point; the same on small ROMs), on the
+    calling thread alone.  The products run on the process's BLAS
     threads, and OpenBLAS's helper threads then spin for ~0.1 s: a process refreshing every
     few tens of ms keeps a core busy (docs/rom.md), what a real-time process cannot afford.
 
