@@ -156,13 +156,14 @@ def _tangent_reference(hz, hm, nd, r, cap_factor, output_scale):
     return sensitivity, hqq_inv, out_q, hz[w, q], indicator / output_scale[:, None]
 
 
-@pytest.mark.parametrize("case", ["positive definite", "indefinite H_qq", "singular Schur complement"])
+@pytest.mark.parametrize("case", ["positive definite", "indefinite H_qq", "singular Schur complement", "45 modes"])
 def test_compiled_reduced_tangent_equals_inverse_sensitivities_and_indicator_by_numpy(case):
     """H_qq^-1 (Cholesky, or LU when H_qq is indefinite: an unstable state), the predictor dq/dp, the
     output rows and the indicator's matrix with the pseudo-inverse of S = H_ww - H_wq H_qq^-1 H_qw
-    (an enrichment vector inside the basis makes S singular: its direction must be dropped, not inverted)."""
+    (an enrichment vector inside the basis makes S singular: its direction must be dropped, not inverted);
+    also at a size where the row-oriented loops run over many rows and columns."""
     rng = np.random.default_rng(7)
-    nd, r, nw, nu = 2, 6, 4, 3
+    nd, r, nw, nu = (2, 6, 4, 3) if case != "45 modes" else (5, 45, 11, 6)
     k = 1 + nd + r + nw
     m = rng.normal(size=(k, k))
     hz = m @ m.T + 0.5 * np.eye(k)
