@@ -80,6 +80,32 @@ def test_warm_updates_follow_the_fe_along_a_trajectory_with_one_or_two_evaluatio
     assert worst <= TOLERANCE
 
 
+def test_a_cold_solve_reuses_a_converging_hessian_and_lands_where_full_newton_does(cfg, rom, monkeypatch):
+    """Cold solves (Newton from the nearest snapshot) keep a Hessian while the steps contract by 10 (modified
+    Newton: fewer refreshes, each a full Hessian) and reach full Newton's state (SETTLE_CONTRACTION 0:
+    a refresh every step) to its tolerance."""
+    d, v = rom.envelope.sample(6, seed=13)
+
+    def cold_solves():
+        twin = ReducedTwin(cfg, rom)
+        answers, refreshes = [], 0
+        for k in range(6):
+            twin.reset()
+            before = twin.refreshes
+            res = twin.solve(d[k], v[k])
+            assert res.fallback == ""
+            answers.append((res.force, res.capacitance))
+            refreshes += twin.refreshes - before
+        return np.array(answers), refreshes
+
+    modified, fewer = cold_solves()
+    monkeypatch.setattr(reduced_twin, "SETTLE_CONTRACTION", 0.0)
+    full, every = cold_solves()
+    assert fewer < every, (fewer, every)
+    np.testing.assert_allclose(modified[:, 0], full[:, 0], rtol=1e-9, atol=1e-9 * np.abs(full[:, 0]).max())
+    np.testing.assert_allclose(modified[:, 1], full[:, 1], rtol=1e-9)
+
+
 def test_point_maps_in_float32_move_the_outputs_by_their_round_off_only(cfg, rom, monkeypatch):
     """The sampled points' maps are stored in float32 (``MAP_DTYPE``: an update is bound by streaming
     them from memory).  Along the path above, forces and capacitances stay within 1e-5 of those with
