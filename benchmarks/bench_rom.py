@@ -15,7 +15,9 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
     errors against FE warm solves (and the FE's time per warm update), then the time per
     update of the library's ``ReducedTwin.solve`` running alone on the same paths
     (median, mean, p99, max; refreshes in the calling thread, then ``background_refresh``;
-    back to back, or one per period at ``--pace`` Hz, as a control loop runs them);
+    back to back, or one per period at ``--pace`` Hz, as a control loop runs them), with the
+    errors of the timed updates themselves (with ``background_refresh`` they depend on how far
+    the worker lags, which the FE's solves between the updates above would hide);
   - the same for actuator units (``--kinds``): ``biased``, the middle unit biased on an
     LBS of 40 N/m (free position 10.75 mm) with a force command of 20 mN sin(2 pi i / 200)
     at update i, the other units on the paths (quasi-static solves); ``dynamic``, the same
@@ -125,51 +127,66 @@ def updater(twin, modes: tuple[str, ...] | None, dt: float | None, d: np.ndarray
 
 
 def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, kind: str = "driven",
-            second_step: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+            second_step: float | None = None) -> tuple:
     """Reduced and FE twins along one path: force and capacitance errors of the ROM, its position errors [m],
-    FE times [ms], and whether its (scaled) indicator was above the ROM's tolerance (an update the
-    ROM's own tolerance would have sent to the FE; here the ROM answers every update)."""
+    FE times [ms], whether its (scaled) indicator was above the ROM's tolerance (an update the
+    ROM's own tolerance would have sent to the FE; here the ROM answers every update), and the FE's
+    (force, capacitance) of every update."""
     cfg, modes, dt = kind_setup(cfg, kind)
     twin = ReducedTwin(cfg, rom, tolerance=np.inf, second_step=second_step)
     fe = ArrayTwin(cfg, NewtonSettings(check_stability=False))
     run, run_fe = updater(twin, modes, dt, d, v), updater(fe, modes, dt, d, v)
-    force, cap, position, fe_ms, flagged = [], [], [], [], []
+    force, cap, position, fe_ms, flagged, truth = [], [], [], [], [], []
     for i in range(len(d)):
         res = run(i)
         flagged.append(res.error_indicator > rom.tolerance)
         tic = time.perf_counter()
         ref = run_fe(i)
         fe_ms.append(1e3 * (time.perf_counter() - tic))
+        truth.append((ref.force, ref.capacitance))
         force.append(np.abs(res.force - ref.force) / rom.force_reference)
         cap.append(np.abs(res.capacitance - ref.capacitance) / ref.capacitance)
         position.append(np.abs(res.position - ref.position))
-    return np.array(force[1:]), np.array(cap[1:]), np.array(position[1:]), np.array(fe_ms[1:]), np.array(flagged[1:])
+    return (np.array(force[1:]), np.array(cap[1:]), np.array(position[1:]), np.array(fe_ms[1:]),
+            np.array(flagged[1:]), truth)
+
+
+def output_errors(rom, outputs: list, truth: list) -> tuple[float, float]:
+    """Largest force error (over each unit's force reference) and capacitance error (relative) of a timed run's
+    ``outputs`` (updates 1, 2, ... of a path) against the FE's ``truth`` (updates 0, 1, ...)."""
+    force = max(float(np.max(np.abs(f - truth[i + 1][0]) / rom.force_reference)) for i, (f, _) in enumerate(outputs))
+    cap = max(float(np.max(np.abs(c - truth[i + 1][1]) / truth[i + 1][1])) for i, (_, c) in enumerate(outputs))
+    return force, cap
 
 
 def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background: bool, kind: str = "driven",
                  second_step: float | None = None, pace: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
     """The ROM alone along one path (as a control loop runs it): wall and process CPU ms per update after the
     first (the CPU time leaves out the time other processes held the core, and counts the refresh worker);
-    with ``pace`` [Hz] one update per period of a steady clock, else back to back."""
+    with ``pace`` [Hz] one update per period of a steady clock, else back to back.  The counts include the
+    outputs (force, capacitance) of every timed update: with the refresh in a worker they depend on how far
+    it lags, so they are judged from this run, not from :func:`compare`'s (where the FE's solves between
+    the updates give the worker time)."""
     cfg, modes, dt = kind_setup(cfg, kind)
     twin = ReducedTwin(cfg, rom, tolerance=np.inf, background_refresh=background, second_step=second_step)
     run = updater(twin, modes, dt, d, v)
     run(0)
     start = (twin.evaluations, twin.refreshes)
-    ms, cpu = [], []
+    ms, cpu, outputs = [], [], []
     due = time.perf_counter()
     for i in range(1, len(d)):
         if pace > 0:
             due += 1.0 / pace
             time.sleep(max(0.0, due - time.perf_counter()))
         tic, tic_cpu = time.perf_counter(), time.process_time()
-        run(i)
+        res = run(i)
         ms.append(1e3 * (time.perf_counter() - tic))
         cpu.append(1e3 * (time.process_time() - tic_cpu))
+        outputs.append((res.force, res.capacitance))
     twin.close()
     return np.array(ms), np.array(cpu), {"evaluations": twin.evaluations - start[0],
                                          "refreshes": twin.refreshes - start[1],
-                                         "fallbacks": sum(twin.fallbacks.values())}
+                                         "fallbacks": sum(twin.fallbacks.values()), "outputs": outputs}
 
 
 def main_node(rom_file: str, seconds: float, check_rate: float, priority: int = 0) -> None:
@@ -291,11 +308,13 @@ def main() -> None:
           + f"; {load()}")
     paths = [trajectory(rom.envelope, args.length, args.step, seed) for seed in range(args.paths)]
     kinds = args.kinds.split(",")
+    truth = {}  # kind -> per path, the FE's outputs of every update
     for kind in kinds:
         print(f" {kind}" + ("" if kind == "driven" else f" (unit {cfg.n_units // 2 + 1}: LBS {LBS}, force "
                                                         f"{FORCE:g} N sin, mass {MASS if kind == 'dynamic' else 0:g} kg"
                                                         + (f", dt {DT:g} s)" if kind == "dynamic" else ")")))
         errors = [compare(cfg, rom, d, v, kind, args.second_step) for d, v in paths]
+        truth[kind] = [e[5] for e in errors]
         force, cap, position, fe_ms, flagged = (np.concatenate([e[i] for e in errors]) for i in range(5))
         over = np.maximum(force.max(axis=1), cap.max(axis=1)) > rom.tolerance
         print(f"  errors against the FE's warm updates: force max {force.max():.4%} mean {force.mean():.5%}; "
@@ -312,6 +331,7 @@ def main() -> None:
                     for d, v in paths]
             ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
             n = ms.size
+            errs = [output_errors(timed_rom, r[2]["outputs"], t) for r, t in zip(runs, truth[kind])]
             where = "in a worker thread" if background else "in the calling thread"
             where += f", updates at {args.pace:g} Hz" if args.pace > 0 else ""
             which = f" [{os.path.basename(name)}]" if args.against else ""
@@ -320,7 +340,8 @@ def main() -> None:
                   f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "
                   f"{sum(r[2]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
                   f"{sum(r[2]['refreshes'] for r in runs)} refreshes, {sum(r[2]['fallbacks'] for r in runs)} "
-                  f"fallbacks in {n} updates; {load()}")
+                  f"fallbacks in {n} updates; errors of these updates against the FE: force max "
+                  f"{max(e[0] for e in errs):.4%}, capacitance max {max(e[1] for e in errs):.4%}; {load()}")
 
 
 if __name__ == "__main__":
