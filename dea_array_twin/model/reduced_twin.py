@@ -94,6 +94,12 @@ MAP_DTYPE = np.float32
 #: evaluation ~0.35 ms: cold solves there took 3.1 refreshes and 8.1 evaluations (46 ms median) instead
 #: of 5.5 and 6.5 (88 ms), the same states to round-off.
 SETTLE_CONTRACTION = 0.1
+#: With ``background_refresh``: a command farther than this many ``refresh_distance`` from where the Hessian
+#: was taken, in some input, while the worker has not delivered a newer one, refreshes it in the calling
+#: thread.  A stale Hessian's Newton corrections understate the error they leave (``second_step`` takes
+#: them for it): on the 200-mode 4-by-4, whose worker needs ~60-90 ms a Hessian, the updates were 0.35 %
+#: off at the default ``second_step``, 0.096 % with this (and stalls of a per-point refresh instead).
+STALE_LIMIT = 2.0
 #: Columns of the reduced Hessian (``[1, d, q, w]``) from which the refreshes of a twin without
 #: ``background_refresh`` are BLAS products (:func:`.rom_kernels.hessian`).  Measured: 1-by-3, 51
 #: columns, 0.4 -> 0.3 ms, not worth the BLAS helper thread that then spins beside the process (a
@@ -422,6 +428,12 @@ class ReducedTwin:
             self._pending = job
         return verdict_of(job, lambda done: bool(done[0].stable))
 
+    def _lags(self, d1: np.ndarray, v1: np.ndarray) -> bool:
+        """Whether the command is more than :data:`STALE_LIMIT` times ``refresh_distance`` from the tangent's point
+        in some input: a worker that has not delivered by then lags too far for the update's accuracy."""
+        p = np.concatenate([d1[self._driven], self._maxwell_factor * v1 * v1])
+        return bool(np.any(np.abs(p - self._tangent_at) > STALE_LIMIT * self._refresh_step))
+
     def _collect_refresh(self) -> int:
         """Install a background refresh that has finished (returns 1 if one was)."""
         if self._pending is None or not self._pending.done():
@@ -718,7 +730,11 @@ class ReducedTwin:
             self._cold = self._projected = False
         else:
             refreshes = self._collect_refresh()
-            if far or self._refresh_next:
+            if far and self._pool is not None and self._lags(d1, v1):
+                self._pending = None  # (older than the tangent taken here: dropped when it ends)
+                self._refresh(z, m0)
+                refreshes += 1
+            elif far or self._refresh_next:
                 refreshes += self._request_refresh(z, m0)
         m1, result, info = np.empty(self.n_units), np.empty((5, self.n_units)), np.empty(7)
         bias_force = external = self._zeros
