@@ -515,7 +515,7 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
     (the products' rounding: ~1e-7 of the largest entry with float32 maps), the ``[1, d, q]``
     block's upper triangle only, by row panels of :data:`PANEL` columns (the full product
     costs twice its flops; 200-mode 4-by-4: 4.5-4.9 ms for the block against 5.5 ms, ~9-12 ms
-    in all).  Without, a compiled rank-6 update of ``H`` per point (:func:`_hessian`; 57 ms
+    in all).  Without, a compiled rank-6 update of ``H`` per point (:func:`_hessian`; 57-96 ms
     there, where ``H`` streams from memory once per point; the same on small ROMs), on the
     calling thread alone.  The products run on the process's BLAS
     threads, and OpenBLAS's helper threads then spin for ~0.1 s: a process refreshing every
