@@ -144,19 +144,25 @@ def compare(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, kind: str = "dr
         ref = run_fe(i)
         fe_ms.append(1e3 * (time.perf_counter() - tic))
         truth.append((ref.force, ref.capacitance))
-        force.append(np.abs(res.force - ref.force) / rom.force_reference)
-        cap.append(np.abs(res.capacitance - ref.capacitance) / ref.capacitance)
+        f_err, c_err = errors_of(rom, res.force, res.capacitance, ref.force, ref.capacitance)
+        force.append(f_err)
+        cap.append(c_err)
         position.append(np.abs(res.position - ref.position))
     return (np.array(force[1:]), np.array(cap[1:]), np.array(position[1:]), np.array(fe_ms[1:]),
             np.array(flagged[1:]), truth)
 
 
 def output_errors(rom, outputs: list, truth: list) -> tuple[float, float]:
-    """Largest force error (over each unit's force reference) and capacitance error (relative) of a timed run's
-    ``outputs`` (updates 1, 2, ... of a path) against the FE's ``truth`` (updates 0, 1, ...)."""
-    force = max(float(np.max(np.abs(f - truth[i + 1][0]) / rom.force_reference)) for i, (f, _) in enumerate(outputs))
-    cap = max(float(np.max(np.abs(c - truth[i + 1][1]) / truth[i + 1][1])) for i, (_, c) in enumerate(outputs))
-    return force, cap
+    """Largest force error and capacitance error (:func:`errors_of`) of a timed run's ``outputs`` (updates 1, 2,
+    ... of a path) against the FE's ``truth`` (updates 0, 1, ...)."""
+    pairs = [errors_of(rom, f, c, *truth[i + 1]) for i, (f, c) in enumerate(outputs)]
+    return max(float(p[0].max()) for p in pairs), max(float(p[1].max()) for p in pairs)
+
+
+def errors_of(rom, force: np.ndarray, capacitance: np.ndarray, fe_force: np.ndarray,
+              fe_capacitance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per unit: force error over the unit's force reference, capacitance error relative to the FE's."""
+    return np.abs(force - fe_force) / rom.force_reference, np.abs(capacitance - fe_capacitance) / fe_capacitance
 
 
 def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background: bool, kind: str = "driven",

@@ -428,12 +428,6 @@ class ReducedTwin:
             self._pending = job
         return verdict_of(job, lambda done: bool(done[0].stable))
 
-    def _lags(self, d1: np.ndarray, v1: np.ndarray) -> bool:
-        """Whether the command is more than :data:`STALE_LIMIT` times ``refresh_distance`` from the tangent's point
-        in some input: a worker that has not delivered by then lags too far for the update's accuracy."""
-        p = np.concatenate([d1[self._driven], self._maxwell_factor * v1 * v1])
-        return bool(np.any(np.abs(p - self._tangent_at) > STALE_LIMIT * self._refresh_step))
-
     def _collect_refresh(self) -> int:
         """Install a background refresh that has finished (returns 1 if one was)."""
         if self._pending is None or not self._pending.done():
@@ -576,7 +570,7 @@ class ReducedTwin:
                 d1[k] = min(max(w, self._lo[k]), self._hi[k])
                 outside = outside or d1[k] != w
                 infinite = infinite or not math.isfinite(f1[k])
-        code, far = classify(d1, v1, self._limit, self._bounds, self._tangent_at, self._refresh_step)
+        code, moved = classify(d1, v1, self._limit, self._bounds, self._tangent_at, self._refresh_step)
         if code == 1 or infinite:
             raise ValueError(f"displacement, voltage and force must be finite, got {d1.tolist()} m, "
                              f"{v1.tolist()} V, {f1.tolist()} N")
@@ -588,7 +582,7 @@ class ReducedTwin:
             reason = reason or "outside the envelope"
             return self._fallback("envelope", reason, d1, v1, modes, check_stability, cancel, tic, f1, dt)
         try:
-            result = self._reduced(d1, v1, far, bool(check_stability), cancel, tic, modes, biased, f1, dt)
+            result = self._reduced(d1, v1, moved, bool(check_stability), cancel, tic, modes, biased, f1, dt)
         except SolveCancelled:
             raise
         except ConvergenceError as exc:
@@ -713,7 +707,7 @@ class ReducedTwin:
                 return evals, refreshes, predicted
             biased = (self._forces, units, slots, g - dg * w, dg)  # G linearised at the new heights
 
-    def _reduced(self, d1: np.ndarray, v1: np.ndarray, far: bool, check: bool, cancel: Callable[[], bool] | None,
+    def _reduced(self, d1: np.ndarray, v1: np.ndarray, moved: float, check: bool, cancel: Callable[[], bool] | None,
                  tic: float, modes: tuple, units: np.ndarray, f1: np.ndarray, dt: float | None) -> ReducedResult:
         if self._lifted.any():
             raise _Refused("contact", f"the indenters of units {(np.flatnonzero(self._lifted) + 1).tolist()} are "
@@ -730,11 +724,11 @@ class ReducedTwin:
             self._cold = self._projected = False
         else:
             refreshes = self._collect_refresh()
-            if far and self._pool is not None and self._lags(d1, v1):
+            if moved > STALE_LIMIT and self._pool is not None and not refreshes:  # the worker lags too far
                 self._pending = None  # (older than the tangent taken here: dropped when it ends)
                 self._refresh(z, m0)
                 refreshes += 1
-            elif far or self._refresh_next:
+            elif moved > 1.0 or self._refresh_next:
                 refreshes += self._request_refresh(z, m0)
         m1, result, info = np.empty(self.n_units), np.empty((5, self.n_units)), np.empty(7)
         bias_force = external = self._zeros

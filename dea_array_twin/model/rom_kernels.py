@@ -247,30 +247,31 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
 @numba.njit(**_JIT)
 def _classify(d1, v1, limit, lo, hi, vlo, vhi, driven, maxwell_factor, tangent_at, refresh_step):
     """0: inside the envelope, 1: not finite, 2: beyond max_displacement, 3: outside the envelope;
-    and whether the command has moved ``refresh_step`` from where the tangent was refreshed."""
+    and how far the command has moved from where the tangent was refreshed, in ``refresh_step``s."""
     nd = driven.size
     for u in range(v1.size):
         if not (np.isfinite(d1[u]) and np.isfinite(v1[u])):
-            return 1, False
+            return 1, 0.0
         if abs(d1[u]) > limit:
-            return 2, False
+            return 2, 0.0
     code = 0
     for u in range(v1.size):
         if d1[u] < lo[u] or d1[u] > hi[u] or v1[u] < vlo[u] or v1[u] > vhi[u]:
             code = 3
-    far = False
+    moved = 0.0
     for i in range(nd):
-        far = far or abs(d1[driven[i]] - tangent_at[i]) > refresh_step[i]
+        moved = max(moved, abs(d1[driven[i]] - tangent_at[i]) / refresh_step[i])
     for u in range(v1.size):
-        far = far or abs(maxwell_factor * v1[u] * v1[u] - tangent_at[nd + u]) > refresh_step[nd + u]
-    return code, far
+        moved = max(moved, abs(maxwell_factor * v1[u] * v1[u] - tangent_at[nd + u]) / refresh_step[nd + u])
+    return code, moved
 
 
 def classify(d1: np.ndarray, v1: np.ndarray, limit: float, bounds: tuple, tangent_at: np.ndarray,
-             refresh_step: np.ndarray) -> tuple[int, bool]:
-    """Check a command: ``(code, far)``, code 0 inside the envelope, 1 not finite, 2 beyond
-    ``limit`` [m], 3 outside the envelope; ``far`` when some input moved more than ``refresh_step``
-    from ``tangent_at`` (driven displacements, then Maxwell coefficients).
+             refresh_step: np.ndarray) -> tuple[int, float]:
+    """Check a command: ``(code, moved)``, code 0 inside the envelope, 1 not finite, 2 beyond
+    ``limit`` [m], 3 outside the envelope; ``moved`` the largest change of an input from
+    ``tangent_at`` (driven displacements, then Maxwell coefficients) in units of its ``refresh_step``
+    (above 1: refresh).
 
     ``bounds`` is ``(lo, hi, vlo, vhi, driven, maxwell_factor)``: displacement bounds per
     unit (+-inf for free units), voltage bounds, driven unit indices and ``eps / (2 t0^2)``.

@@ -288,8 +288,8 @@ class TwinNode(Node):
         second_step = declare_number(self, "rom_second_step", 0.0,
                                      "model rom: output change (fraction of its scale) of an update's first Newton "
                                      "correction above which it evaluates a second time; 0 = the ROM's tolerance, "
-                                     "at most 1e-3 (docs/rom.md: a 4-by-4 needs 5e-4 for 0.1 % here, where the "
-                                     "Hessian refreshes in a worker)")
+                                     "at most 1e-3 (docs/rom.md: larger is faster and less exact; a 4-by-4 was "
+                                     "0.6 % off at 2e-3 here, where the Hessian refreshes in a worker)")
         if model == "fe":  # the tangents of warm updates refreshed off the solver thread
             return ArrayTwin(cfg, background_tangent=True)
         if model != "rom":
