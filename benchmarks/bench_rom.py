@@ -3,6 +3,7 @@
 Run:  .venv/bin/python benchmarks/bench_rom.py [--size 1x3|4x4] [--snapshots N] [--modes R]
                                                [--validation N] [--workers N] [--rom FILE] [--save FILE]
                                                [--pace HZ] [--second-step S] [--against FILE ...]
+                                               [--threaded-blas]
       .venv/bin/python benchmarks/bench_rom.py --rom FILE --node SECONDS [--fe-check-rate HZ]
                                                [--realtime-priority P]
 
@@ -14,7 +15,9 @@ Reports (default mesh, every unit driven, d in [0, 0.75 D], V in [0, eq. 14 volt
     voltage by the matching fraction of its range, reflected at the envelope): the same
     errors against FE warm solves (and the FE's time per warm update), then the time per
     update of the library's ``ReducedTwin.solve`` running alone on the same paths
-    (median, mean, p99, max; refreshes in the calling thread, then ``background_refresh``;
+    (median, mean, p99, max; refreshes in the calling thread, then ``background_refresh``
+    with the Hessians as BLAS products, the process's BLAS on one thread as in the node;
+    ``--threaded-blas`` leaves OpenBLAS its threads and the worker's Hessians per point;
     back to back, or one per period at ``--pace`` Hz, as a control loop runs them), with the
     errors of the timed updates themselves (with ``background_refresh`` they depend on how far
     the worker lags, which the FE's solves between the updates above would hide);
@@ -52,6 +55,7 @@ import time
 import numpy as np
 
 from dea_array_twin import ArrayConfig, ArrayTwin, NewtonSettings
+from dea_array_twin.blasthreads import single_threaded_blas
 from dea_array_twin.cli.rom import summary_lines
 from dea_array_twin.model.reduced import Envelope
 from dea_array_twin.model.reduced_twin import ReducedTwin
@@ -166,15 +170,17 @@ def errors_of(rom, force: np.ndarray, capacitance: np.ndarray, fe_force: np.ndar
 
 
 def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background: bool, kind: str = "driven",
-                 second_step: float | None = None, pace: float = 0.0) -> tuple[np.ndarray, np.ndarray, dict]:
+                 second_step: float | None = None, pace: float = 0.0,
+                 blas: bool | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The ROM alone along one path (as a control loop runs it): wall and process CPU ms per update after the
     first (the CPU time leaves out the time other processes held the core, and counts the refresh worker);
     with ``pace`` [Hz] one update per period of a steady clock, else back to back.  The counts include the
     outputs (force, capacitance) of every timed update: with the refresh in a worker they depend on how far
     it lags, so they are judged from this run, not from :func:`compare`'s (where the FE's solves between
-    the updates give the worker time)."""
+    the updates give the worker time).  ``blas``: the twin's (None: its default)."""
     cfg, modes, dt = kind_setup(cfg, kind)
-    twin = ReducedTwin(cfg, rom, tolerance=np.inf, background_refresh=background, second_step=second_step)
+    twin = ReducedTwin(cfg, rom, tolerance=np.inf, background_refresh=background, second_step=second_step,
+                       blas=blas)
     run = updater(twin, modes, dt, d, v)
     run(0)
     start = (twin.evaluations, twin.refreshes)
@@ -276,6 +282,8 @@ def main() -> None:
     parser.add_argument("--save", help="write the trained ROM here")
     parser.add_argument("--against", nargs="+", default=[], metavar="FILE",
                         help="with --rom: other ROM files of the config, timed in turn with it in every round")
+    parser.add_argument("--threaded-blas", action="store_true",
+                        help="leave OpenBLAS its threads (the worker's Hessians then per point), as before stop 30")
     parser.add_argument("--node", type=float, metavar="SECONDS", help="measure the node with --rom instead")
     parser.add_argument("--fe-check-rate", type=float, default=1.0, help="--node: FE checks per second (default 1)")
     parser.add_argument("--realtime-priority", type=int, default=0,
@@ -309,6 +317,8 @@ def main() -> None:
         if args.save:
             print(f"saved {save_rom(rom, args.save)}")
     print("\n".join(summary_lines(rom)))
+    pinned = not args.threaded_blas and single_threaded_blas()  # after training: its build uses every thread
+    print(f"BLAS: {'one thread (the worker refreshes by BLAS products, as the node)' if pinned else 'its own threads'}")
     print(f"\nwarm trajectories: {args.paths} x {args.length} updates, {args.step * 1e3:g} mm per update per "
           f"indenter" + (f", second_step {args.second_step:g}" if args.second_step is not None else "")
           + f"; {load()}")
@@ -333,8 +343,8 @@ def main() -> None:
     for round_ in range(1, args.rounds + 1):  # the kinds' (and ROMs') timings interleaved, round after round
         print(f" timing, round {round_} of {args.rounds}")
         for kind, (name, timed_rom), background in itertools.product(kinds, timed, (False, True)):
-            runs = [time_updates(cfg, timed_rom, d, v, background, kind, args.second_step, args.pace)
-                    for d, v in paths]
+            runs = [time_updates(cfg, timed_rom, d, v, background, kind, args.second_step, args.pace,
+                                 blas=pinned if background else None) for d, v in paths]
             ms, cpu = (np.concatenate([r[i] for r in runs]) for i in (0, 1))
             n = ms.size
             errs = [output_errors(timed_rom, r[2]["outputs"], t) for r, t in zip(runs, truth[kind])]

@@ -18,8 +18,9 @@ The subpackages, lowest layer first (each may import only those below it; checke
 ``lint-imports``, contracts in ``.importlinter``):
 
 * :mod:`.model`: the numerical core (config, mesh, material, FE assembly, solver, twin);
-* :mod:`.configfile`, :mod:`.romfile`, :mod:`.parallel`: the config from YAML files,
-  reduced models as ``.npz`` files, running independent tasks (here, processes, Dask);
+* :mod:`.configfile`, :mod:`.romfile`, :mod:`.parallel`, :mod:`.blasthreads`: the config
+  from YAML files, reduced models as ``.npz`` files, running independent tasks (here,
+  processes, Dask), holding the process's BLAS to one thread (the ROM node);
 * :mod:`.bag`: ROS 2-profile MCAP files: writing, reading, recovery, time series;
 * :mod:`.ros`: the ROS 2 node, its recorder, the test harness, example controllers;
 * :mod:`.replay`, :mod:`.studies`, :mod:`.calibration`, :mod:`.rom`: re-simulating

@@ -100,8 +100,9 @@ SETTLE_CONTRACTION = 0.1
 #: them for it): on the 200-mode 4-by-4, whose worker needs ~60-90 ms a Hessian, the updates were 0.35 %
 #: off at the default ``second_step``, 0.096 % with this (and stalls of a per-point refresh instead).
 STALE_LIMIT = 2.0
-#: Columns of the reduced Hessian (``[1, d, q, w]``) from which the refreshes of a twin without
-#: ``background_refresh`` are BLAS products (:func:`.rom_kernels.hessian`).  Measured: 1-by-3, 51
+#: Columns of the reduced Hessian (``[1, d, q, w]``) from which the refreshes are BLAS products
+#: (:func:`.rom_kernels.hessian`; with ``background_refresh`` only when told the BLAS has one
+#: thread, ``blas=True``).  Measured: 1-by-3, 51
 #: columns, 0.4 -> 0.3 ms, not worth the BLAS helper thread that then spins beside the process (a
 #: library loop's CPU per update went from 0.05 to 0.14 ms); 4-by-4, 173 columns 30 -> 7.3 ms, 273
 #: columns 57 -> 14 ms.
@@ -216,11 +217,14 @@ class ReducedTwin:
         Compute refreshes of warm updates in a worker thread (the Hessian kernel
         releases the GIL) and use the newest finished one, so that no update waits for
         one (a real-time loop); cold starts and ``check_stability`` still refresh in
-        the calling thread.  A real-time twin's Hessians use no BLAS (summed point by
-        point on the thread that asks: no BLAS helper thread left spinning on the core
-        beside the updates, :func:`.rom_kernels.hessian`); without ``background_refresh``
-        a large ROM's (:data:`BLAS_COLUMNS`) are BLAS products, four times faster.
-        :meth:`close` stops the thread.
+        the calling thread.  :meth:`close` stops the thread.
+    blas : bool, optional
+        Whether a large ROM's (:data:`BLAS_COLUMNS`) Hessians are BLAS products, four
+        times faster than summed point by point (:func:`.rom_kernels.hessian`).  Default:
+        without ``background_refresh`` only: OpenBLAS's helper threads spin for ~0.1 s
+        after a product, on the core beside a real-time twin's updates.  A process whose
+        BLAS has one thread (:func:`dea_array_twin.blasthreads.single_threaded_blas`)
+        passes True: its products run on the worker alone.
 
     Attributes
     ----------
@@ -237,7 +241,7 @@ class ReducedTwin:
 
     def __init__(self, config: ArrayConfig | None, rom: ReducedModel, settings: NewtonSettings | None = None,
                  tolerance: float | None = None, fe: ArrayTwin | None = None, second_step: float | None = None,
-                 refresh_distance: float = 0.25, background_refresh: bool = False):
+                 refresh_distance: float = 0.25, background_refresh: bool = False, blas: bool | None = None):
         self._config = config or ArrayConfig()
         check_config(rom, self._config)
         self.rom = rom
@@ -291,13 +295,18 @@ class ReducedTwin:
         self.second_step = float(second_step if second_step is not None else min(1e-3, self.tolerance))
         self.refresh_distance = refresh_distance
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="rom-tangent") if background_refresh else None
-        self._blas = not background_refresh and self._nc + rom.enrichment.shape[1] >= BLAS_COLUMNS
+        blas = not background_refresh if blas is None else blas
+        self._blas = blas and self._nc + rom.enrichment.shape[1] >= BLAS_COLUMNS
         self._refresh_step = refresh_distance * self._range
         self.fallbacks: Counter = Counter()
         self.updates = self.evaluations = self.refreshes = self.resyncs = 0
         self._resync: TwinResult | None = None
         self.reset()
 
+    @property
+    def blas_products(self) -> bool:
+        """Whether this twin's Hessian refreshes are BLAS products (else summed point by point)."""
+        return self._blas
 
     @property
     def config(self) -> ArrayConfig:

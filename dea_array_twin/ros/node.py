@@ -70,6 +70,7 @@ from std_msgs.msg import ColorRGBA, Float64MultiArray, MultiArrayDimension
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
+from ..blasthreads import single_threaded_blas
 from ..configfile import load_config
 from ..model.config import ArrayConfig, ConfigError
 from ..model.membrane import BIASED, FREE, MODES, check_modes
@@ -289,7 +290,7 @@ class TwinNode(Node):
                                      "model rom: output change (fraction of its scale) of an update's first Newton "
                                      "correction above which it evaluates a second time; 0 = the ROM's tolerance, "
                                      "at most 1e-3 (docs/rom.md: larger is faster and less exact; a 4-by-4 was "
-                                     "0.6 % off at 2e-3 here, where the Hessian refreshes in a worker)")
+                                     "0.08-0.10 % off at 2e-3 here, where the Hessian refreshes in a worker)")
         if model == "fe":  # the tangents of warm updates refreshed off the solver thread
             return ArrayTwin(cfg, background_tangent=True)
         if model != "rom":
@@ -297,8 +298,13 @@ class TwinNode(Node):
         if not rom_file:
             raise ConfigError("rom_file: model 'rom' needs a ROM file (train one with dea-twin rom train)")
         # A refresh of the reduced Hessian (0.5-4 ms, ~10 a second on a smooth stream) would
-        # hold the solver thread for one to four 1 kHz ticks: it runs in a worker thread.
-        twin = ReducedTwin(cfg, load_rom(rom_file, cfg), background_refresh=True, second_step=second_step or None)
+        # hold the solver thread for one to four 1 kHz ticks: it runs in a worker thread, as
+        # BLAS products where this process's BLAS can be held to one thread (no helper
+        # threads spinning on the core beside the updates; else summed point by point).
+        #: Whether every BLAS of this process was set to one thread (model rom only).
+        self.blas_single_threaded = single_threaded_blas()
+        twin = ReducedTwin(cfg, load_rom(rom_file, cfg), background_refresh=True, second_step=second_step or None,
+                           blas=self.blas_single_threaded)
         warning = twin.rom.validation_warning()
         if warning:
             self.get_logger().warning(f"rom_file {rom_file}: {warning} (fe_check_rate compares it with the FE while "
@@ -605,6 +611,8 @@ class TwinNode(Node):
         fallbacks = twin.fallbacks
         values.update(model="rom", rom_file=twin.rom.config_hash, rom_tolerance=twin.tolerance,
                       rom_second_step=twin.second_step,
+                      rom_hessian="BLAS products" if twin.blas_products else "per point",
+                      blas_single_threaded=self.blas_single_threaded,
                       rom_validation=twin.rom.validation_warning() or "within its tolerance",
                       rom_updates=twin.updates, rom_refreshes=twin.refreshes, rom_resyncs=twin.resyncs,
                       **{f"rom_fallbacks_{kind}": fallbacks.get(kind, 0)

@@ -127,14 +127,18 @@ def test_point_maps_in_float32_move_the_outputs_by_their_round_off_only(cfg, rom
     assert np.abs(f32 - f64).max() > 0.0  # the float32 maps were used
 
 
-def test_a_real_time_twin_computes_its_hessians_without_blas(cfg, rom, monkeypatch):
+def test_a_real_time_twin_computes_its_hessians_without_blas_unless_told_its_blas_has_one_thread(cfg, rom,
+                                                                                                monkeypatch):
     """With ``background_refresh`` (a control loop's twin) every Hessian, the worker's and the calling
-    thread's (a cold start, a stability check), is summed point by point: no BLAS product, after which
-    OpenBLAS's helper thread would spin on the core beside the updates (the 1-by-3 ROM node at 1 kHz:
-    1.1 cores instead of 0.35, docs/rom.md).  Without it, a large ROM's Hessians are BLAS products; both
-    twins answer the same to 1e-9 of the largest force.  (The coarse ROM is small: it gets the products only
-    with ``BLAS_COLUMNS`` lowered; by default a small ROM's Hessian is summed point by point too.)"""
-    assert not ReducedTwin(cfg, rom)._blas
+    thread's (a cold start, a stability check), is summed point by point by default: no BLAS product, after
+    which OpenBLAS's helper thread would spin on the core beside the updates (the 1-by-3 ROM node at 1 kHz:
+    1.1 cores instead of 0.35, docs/rom.md).  Without it, or told ``blas=True`` (a process whose BLAS was set
+    to one thread, as the ROM node's), a large ROM's Hessians are BLAS products; all answer the same to 1e-8
+    of the largest force (the products round in the maps' float32, ~1e-7 of the Hessian's entries, and
+    that moves an update by as much of its last Newton correction: 1.1e-9 seen).  (The coarse ROM is
+    small: it gets the products only with ``BLAS_COLUMNS`` lowered; by default a small ROM's Hessian is
+    summed point by point, whatever ``blas`` says.)"""
+    assert not ReducedTwin(cfg, rom)._blas and not ReducedTwin(cfg, rom, blas=True).blas_products
     monkeypatch.setattr(reduced_twin, "BLAS_COLUMNS", 1)
     calls = []
 
@@ -142,10 +146,7 @@ def test_a_real_time_twin_computes_its_hessians_without_blas(cfg, rom, monkeypat
         calls.append(blas)
         return rom_kernels.hessian(*args, blas=blas)
 
-    monkeypatch.setattr(reduced_twin, "hessian", recorded)
-    results = {}
-    for background in (False, True):
-        twin = ReducedTwin(cfg, rom, background_refresh=background)
+    def forces(twin: ReducedTwin) -> np.ndarray:
         try:
             out = []
             for i in range(30):
@@ -156,10 +157,19 @@ def test_a_real_time_twin_computes_its_hessians_without_blas(cfg, rom, monkeypat
                                       check_stability=i == 15))
         finally:
             twin.close()
-        results[background], used = np.array([r.force for r in out]), set(calls)
-        assert calls and used == {not background}, (background, calls)
+        return np.array([r.force for r in out])
+
+    monkeypatch.setattr(reduced_twin, "hessian", recorded)
+    results = {}
+    for background, blas, expected in ((False, None, True), (True, None, False), (True, True, True)):
+        twin = ReducedTwin(cfg, rom, background_refresh=background, blas=blas)
+        assert twin.blas_products == expected
+        results[background, blas] = forces(twin)
+        assert calls and set(calls) == {expected}, (background, blas, calls)
         calls.clear()
-    np.testing.assert_allclose(results[True], results[False], rtol=0, atol=1e-9 * np.abs(results[False]).max())
+    for key, force in results.items():
+        np.testing.assert_allclose(force, results[False, None], rtol=0, atol=1e-8 * np.abs(force).max(),
+                                   err_msg=str(key))
 
 
 def test_a_twin_whose_worker_lags_refreshes_itself_before_its_hessian_is_too_stale(cfg, rom, monkeypatch):

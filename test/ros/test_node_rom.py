@@ -43,6 +43,9 @@ def test_node_with_a_rom_answers_within_its_tolerance_and_publishes_the_fe_check
     assert float(values["rom_fe_force_difference"]) <= rom.tolerance
     assert float(values["rom_fe_capacitance_difference"]) <= rom.tolerance
     assert values["rom_fallbacks_envelope"] == "0" and int(values["rom_updates"]) >= 1
+    # the node's process holds its OpenBLAS (the wheels' two) to one thread; the coarse ROM is too small
+    # for BLAS products (BLAS_COLUMNS), so its worker sums the Hessian point by point all the same
+    assert values["blas_single_threaded"] == "True" and values["rom_hessian"] == "per point"
     deep_fe = ArrayTwin(cfg).solve([0.002, 0.012, 0.003], v)
     assert list(deep.effort) == pytest.approx(deep_fe.force.tolist(), rel=1e-5, abs=1e-8)
     assert after["rom_fallback"].startswith("envelope:")
