@@ -244,7 +244,8 @@ def main_node(rom_file: str, seconds: float, check_rate: float, priority: int = 
         forces = len(h.messages("force"))
         diags = h.messages("/diagnostics")
     values = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
-    keys = ("scheduling", "updates_per_s", "skipped_ticks", "solve_time_p50_ms", "solve_time_p95_ms",
+    keys = ("scheduling", "blas_single_threaded", "rom_hessian", "updates_per_s", "skipped_ticks",
+            "solve_time_p50_ms", "solve_time_p95_ms",
             "solve_time_max_ms", "rom_updates", "rom_refreshes", "rom_fallbacks_envelope", "rom_fallbacks_indicator",
             "rom_resyncs", "fe_checks", "fe_check_ms", "rom_fe_force_difference_max",
             "rom_fe_capacitance_difference_max")
