@@ -97,7 +97,7 @@ SETTLE_CONTRACTION = 0.1
 #: With ``background_refresh``: a command farther than this many ``refresh_distance`` from where the Hessian
 #: was taken, in some input, while the worker has not delivered a newer one, refreshes it in the calling
 #: thread.  A stale Hessian's Newton corrections understate the error they leave (``second_step`` takes
-#: them for it): on the 200-mode 4-by-4, whose worker needs ~60-90 ms a Hessian, the updates were 0.35 %
+#: them for it): on the 200-mode 4-by-4, whose worker needed ~60-90 ms a Hessian per point, the updates were 0.35 %
 #: off at the default ``second_step``, 0.096 % with this (and stalls of a per-point refresh instead).
 STALE_LIMIT = 2.0
 #: Columns of the reduced Hessian (``[1, d, q, w]``) from which the refreshes are BLAS products

@@ -520,7 +520,8 @@ def hessian(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray
     there, where ``H`` streams from memory once per point; the same on small ROMs), on the
     calling thread alone.  The products run on the process's BLAS
     threads, and OpenBLAS's helper threads then spin for ~0.1 s: a process refreshing every
-    few tens of ms keeps a core busy (docs/rom.md), what a real-time process cannot afford.
+    few tens of ms keeps a core busy (docs/rom.md), what a real-time process cannot afford,
+    unless its BLAS is held to one thread (:mod:`dea_array_twin.blasthreads`, the ROM node).
 
     Returns
     -------
