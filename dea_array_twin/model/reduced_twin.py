@@ -82,11 +82,14 @@ FALLBACKS = ("envelope", "indicator", "newton", "snap", "contact")
 #: Reduced updates (evaluations) one solve may spend on the heights of its biased units
 #: before the FE answers it (a warm update takes one or two).
 MAX_HEIGHT_ITERATIONS = 8
-#: Storage type of the sampled points' maps ``A_p`` (:func:`.rom_kernels.point_maps`; the kernels
-#: accumulate in float64).  An update streams them from memory once per evaluation (16 MB on the
-#: 4-by-4 at 150 modes in float64, more than a core's cache) and is bound by that: in float32 the 4-by-4's
-#: update took half the time, and forces and capacitances moved by ~1e-7 of their values (the
-#: maps' rounding, 6e-8), four orders below a ROM's tolerance (docs/rom.md).
+#: Storage type of the sampled points' maps ``A_p`` (:func:`.rom_kernels.point_maps`).  An update streams
+#: them from memory once per evaluation (16 MB on the 4-by-4 at 150 modes in float64, more than a core's
+#: cache) and is bound by that: in float32 the 4-by-4's update took half the time, and forces and
+#: capacitances moved by ~1e-7 of their values (the maps' rounding, 6e-8), four orders below a ROM's
+#: tolerance (docs/rom.md).  With float32 maps an update's products with them are float32 arithmetic
+#: too (the stresses and the sums over points float64; :func:`.rom_kernels.update`): another 20 % off the
+#: 4-by-4's update, the outputs moved by 2e-7 to 4e-7 and the energy by up to 1e-6.  Cold solves,
+#: Hessians and :func:`.rom_kernels.evaluate` keep float64 products.
 MAP_DTYPE = np.float32
 #: Modified Newton in :meth:`ReducedTwin._settle` (cold starts, jumps): the Hessian of the last refresh is
 #: kept for the next step when this step was at most this fraction of the one before, else refreshed

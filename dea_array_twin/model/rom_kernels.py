@@ -24,9 +24,12 @@ capacitance (eq. 7) times ``t0^2 / eps``.  The Hessian is
     D = B^T H B + S (x) I_3,   B = dc/dF (3 x 6),  H = d2Psi/dc2,
     d2E/dz_j dm_u = - sum_(p in u) xi_p ddet/dF : A_p[:, j].
 
-:func:`evaluate` (numba, one call per update) gives energy, gradient, the gradient
+:func:`evaluate` (numba) gives energy, gradient, the gradient
 along ``W``, the largest ``det C`` per unit and the smallest principal Cauchy stress
-over the evaluated points; :func:`hessian` (when the tangent is refreshed) gives the
+over the evaluated points, in float64 arithmetic; :func:`update` does the same (one or two
+evaluations) with the map products in float32 when the maps are float32 (an update is bound
+by them: half the operations per vector instruction), the stresses and the sums over the
+points in float64; :func:`hessian` (when the tangent is refreshed) gives the
 full Hessian over ``[q, d, w]`` and its ``m`` columns, and :func:`reduced_tangent` what
 an update needs from it (``H_qq^-1``, the predictor's sensitivities, the output rows and
 the indicator's matrix) in the same compiled call chain, without numpy's per-call cost.
@@ -74,6 +77,24 @@ def _state(fmap, p, z, f, c10, c20, c30, k):
         for j in range(fmap.shape[2]):
             acc += fmap[p, c, j] * z[j]
         f[c] = acc
+    return _stress(f, c10, c20, c30, k)
+
+
+@numba.njit(inline="always", **_JIT)
+def _state_single(fmap, p, z32, f, c10, c20, c30, k):
+    """:func:`_state` with ``F = A_p z`` summed in float32 (``z32``: ``z`` in float32)."""
+    for c in range(6):
+        acc = np.float32(0.0)
+        for j in range(fmap.shape[2]):
+            acc += fmap[p, c, j] * z32[j]
+        f[c] = acc
+    return _stress(f, c10, c20, c30, k)
+
+
+@numba.njit(inline="always", **_JIT)
+def _stress(f, c10, c20, c30, k):
+    """``(c0, c1, c2, det C, x = I - 3, Y'(x), g0, g1, g2)`` of ``F = f`` (the second Piola-Kirchhoff stress is
+    ``S = [[2 g0, g2], [g2, 2 g1]]``)."""
     c0 = f[0] * f[0] + f[2] * f[2] + f[4] * f[4]
     c1 = f[1] * f[1] + f[3] * f[3] + f[5] * f[5]
     c2 = f[0] * f[1] + f[2] * f[3] + f[4] * f[5]
@@ -84,8 +105,16 @@ def _state(fmap, p, z, f, c10, c20, c30, k):
     return c0, c1, c2, det, xv, dy, dy - (a + k) * c1, dy - (a + k) * c0, 2.0 * (a + k) * c2
 
 
+#: Points whose contributions :func:`_gradient` sums in float32 before adding them to the float64 gradient
+#: (``single``): the rounding of a block's sum stays that of a few products.
+SINGLE_BLOCK = 16
+
+
 @numba.njit(inline="always", **_JIT)
-def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max):
+def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max, single):
+    """Energy, gradient and the rest of :func:`evaluate` summed over the points; with ``single``, the map
+    products (``F = A_p z`` and ``A_p^T P``, nearly all the work) in float32 arithmetic (twice the lanes of
+    a vector instruction), the stress and the sums over blocks of :data:`SINGLE_BLOCK` points in float64."""
     np_, _, nc = fmap.shape
     nw = wmap.shape[2]
     grad[:] = 0.0
@@ -95,10 +124,19 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
     energy = 0.0
     sigma_min = np.inf
     f = np.empty(6)
+    z32 = np.empty(nc if single else 0, dtype=np.float32)
+    for j in range(z32.size):
+        z32[j] = z[j]
+    g32 = np.zeros(z32.size, dtype=np.float32)
+    gw32 = np.zeros(nw if single else 0, dtype=np.float32)
+    block = 0
     for p in range(np_):
         u = unit[p]
         k = maxwell[u] if u >= 0 else 0.0
-        c0, c1, c2, det, xv, _, g0, g1, g2 = _state(fmap, p, z, f, c10, c20, c30, k)
+        if single:
+            c0, c1, c2, det, xv, _, g0, g1, g2 = _state_single(fmap, p, z32, f, c10, c20, c30, k)
+        else:
+            c0, c1, c2, det, xv, _, g0, g1, g2 = _state(fmap, p, z, f, c10, c20, c30, k)
         s00, s11, s01 = 2.0 * g0, 2.0 * g1, g2
         if u >= 0 and det > det_max[u]:
             det_max[u] = det
@@ -122,20 +160,46 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
         p3 = w * (f[2] * s01 + f[3] * s11)
         p4 = w * (f[4] * s00 + f[5] * s01)
         p5 = w * (f[4] * s01 + f[5] * s11)
-        for j in range(nc):  # one pass along the row (vector instructions)
-            grad[j] += (p0 * fmap[p, 0, j] + p1 * fmap[p, 1, j] + p2 * fmap[p, 2, j] + p3 * fmap[p, 3, j]
-                        + p4 * fmap[p, 4, j] + p5 * fmap[p, 5, j])
-        for j in range(nw):
-            grad_w[j] += (p0 * wmap[p, 0, j] + p1 * wmap[p, 1, j] + p2 * wmap[p, 2, j] + p3 * wmap[p, 3, j]
-                          + p4 * wmap[p, 4, j] + p5 * wmap[p, 5, j])
         if u >= 0:
             grad_m[u] -= w * det
+        if not single:
+            for j in range(nc):  # one pass along the row (vector instructions)
+                grad[j] += (p0 * fmap[p, 0, j] + p1 * fmap[p, 1, j] + p2 * fmap[p, 2, j] + p3 * fmap[p, 3, j]
+                            + p4 * fmap[p, 4, j] + p5 * fmap[p, 5, j])
+            for j in range(nw):
+                grad_w[j] += (p0 * wmap[p, 0, j] + p1 * wmap[p, 1, j] + p2 * wmap[p, 2, j] + p3 * wmap[p, 3, j]
+                              + p4 * wmap[p, 4, j] + p5 * wmap[p, 5, j])
+            continue
+        q0, q1, q2 = np.float32(p0), np.float32(p1), np.float32(p2)
+        q3, q4, q5 = np.float32(p3), np.float32(p4), np.float32(p5)
+        for j in range(nc):
+            g32[j] += (q0 * fmap[p, 0, j] + q1 * fmap[p, 1, j] + q2 * fmap[p, 2, j] + q3 * fmap[p, 3, j]
+                       + q4 * fmap[p, 4, j] + q5 * fmap[p, 5, j])
+        for j in range(nw):
+            gw32[j] += (q0 * wmap[p, 0, j] + q1 * wmap[p, 1, j] + q2 * wmap[p, 2, j] + q3 * wmap[p, 3, j]
+                        + q4 * wmap[p, 4, j] + q5 * wmap[p, 5, j])
+        block += 1
+        if block == SINGLE_BLOCK:
+            _flush(g32, grad)
+            _flush(gw32, grad_w)
+            block = 0
+    if block:
+        _flush(g32, grad)
+        _flush(gw32, grad_w)
     return energy, sigma_min
+
+
+@numba.njit(inline="always", **_JIT)
+def _flush(part, total):
+    """``total += part``, then ``part = 0``."""
+    for j in range(part.size):
+        total[j] += part[j]
+        part[j] = 0.0
 
 
 @numba.njit(**_JIT)
 def _evaluate(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max):
-    return _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max)
+    return _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max, False)
 
 
 @numba.njit(inline="always", **_JIT)
@@ -170,7 +234,9 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         for j in range(nd + nu):
             acc += sensitivity[i, j] * dp[j]
         z[1 + nd + i] += acc
-    energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w, det_max)
+    single = fmap.itemsize == 4  # float32 maps: their products in float32 (see _gradient)
+    energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w, det_max,
+                                  single)
     dq = np.empty(r)
     for i in range(r):  # Newton correction with the last refreshed H_qq
         acc = 0.0
@@ -185,7 +251,7 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         for i in range(r):
             z[1 + nd + i] += dq[i]
         energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w,
-                                      det_max)
+                                      det_max, single)
         evals = 2
         a = hqq_inv @ grad[1 + nd:]
         by = hqq_inv @ (grad[1 + nd:] - g1)
@@ -287,6 +353,9 @@ def update(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.
     Predictor ``q += dq/dp (p1 - p0)``, one evaluation, the Newton correction with
     ``H_qq^-1``; if the correction changes an output by more than ``second_step`` of its
     scale, a second evaluation and a Broyden-corrected second step (see :mod:`.reduced_twin`).
+    The evaluations' products with float32 maps are float32 arithmetic (``F = A_p z`` and
+    ``A_p^T P`` per point; the stresses, and the sums over blocks of :data:`SINGLE_BLOCK`
+    points, in float64): their rounding moves the outputs by ~1e-7 of their values.
 
     Parameters
     ----------
