@@ -111,12 +111,16 @@ SINGLE_BLOCK = 16
 
 
 @numba.njit(inline="always", **_JIT)
-def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max, single):
+def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max, single,
+              stress):
     """Energy, gradient and the rest of :func:`evaluate` summed over the points; with ``single``, the map
     products (``F = A_p z`` and ``A_p^T P``, nearly all the work) in float32 arithmetic (twice the lanes of
-    a vector instruction), the stress and the sums over blocks of :data:`SINGLE_BLOCK` points in float64."""
+    a vector instruction), the stress and the sums over blocks of :data:`SINGLE_BLOCK` points in float64.
+    With rows in ``stress`` (one per point), the gradient along ``W`` is left for :func:`_enrichment`: each
+    point's weighted stress ``P`` goes into its row instead (monitor points' rows: zeros)."""
     np_, _, nc = fmap.shape
-    nw = wmap.shape[2]
+    defer = stress.shape[0] > 0
+    nw = 0 if defer else wmap.shape[2]
     grad[:] = 0.0
     grad_m[:] = 0.0
     grad_w[:] = 0.0
@@ -152,6 +156,8 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
                 sigma_min = low
         w = xi[p]
         if w == 0.0:  # a monitor point: read, not summed
+            if defer:
+                stress[p, :] = 0.0
             continue
         energy += w * (xv * (c10 + xv * (c20 + xv * c30)) - k * det)
         p0 = w * (f[0] * s00 + f[1] * s01)  # P = F S, times the weight
@@ -162,6 +168,9 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
         p5 = w * (f[4] * s01 + f[5] * s11)
         if u >= 0:
             grad_m[u] -= w * det
+        if defer:
+            stress[p, 0], stress[p, 1], stress[p, 2] = p0, p1, p2
+            stress[p, 3], stress[p, 4], stress[p, 5] = p3, p4, p5
         if not single:
             for j in range(nc):  # one pass along the row (vector instructions)
                 grad[j] += (p0 * fmap[p, 0, j] + p1 * fmap[p, 1, j] + p2 * fmap[p, 2, j] + p3 * fmap[p, 3, j]
@@ -190,6 +199,36 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
 
 
 @numba.njit(inline="always", **_JIT)
+def _enrichment(wmap, xi, stress, grad_w, single):
+    """The gradient along ``W`` that :func:`_gradient` left in ``stress``: ``sum_p A_p^T P_p`` over the
+    enrichment's maps, in the same arithmetic and order."""
+    np_, _, nw = wmap.shape
+    grad_w[:] = 0.0
+    gw32 = np.zeros(nw if single else 0, dtype=np.float32)
+    block = 0
+    for p in range(np_):
+        if xi[p] == 0.0:  # a monitor point
+            continue
+        p0, p1, p2, p3, p4, p5 = stress[p, 0], stress[p, 1], stress[p, 2], stress[p, 3], stress[p, 4], stress[p, 5]
+        if not single:
+            for j in range(nw):
+                grad_w[j] += (p0 * wmap[p, 0, j] + p1 * wmap[p, 1, j] + p2 * wmap[p, 2, j] + p3 * wmap[p, 3, j]
+                              + p4 * wmap[p, 4, j] + p5 * wmap[p, 5, j])
+            continue
+        q0, q1, q2 = np.float32(p0), np.float32(p1), np.float32(p2)
+        q3, q4, q5 = np.float32(p3), np.float32(p4), np.float32(p5)
+        for j in range(nw):
+            gw32[j] += (q0 * wmap[p, 0, j] + q1 * wmap[p, 1, j] + q2 * wmap[p, 2, j] + q3 * wmap[p, 3, j]
+                        + q4 * wmap[p, 4, j] + q5 * wmap[p, 5, j])
+        block += 1
+        if block == SINGLE_BLOCK:
+            _flush(gw32, grad_w)
+            block = 0
+    if block:
+        _flush(gw32, grad_w)
+
+
+@numba.njit(inline="always", **_JIT)
 def _flush(part, total):
     """``total += part``, then ``part = 0``."""
     for j in range(part.size):
@@ -199,7 +238,8 @@ def _flush(part, total):
 
 @numba.njit(**_JIT)
 def _evaluate(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max):
-    return _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max, False)
+    return _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max, False,
+                     np.empty((0, 6)))
 
 
 @numba.njit(inline="always", **_JIT)
@@ -235,8 +275,9 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
             acc += sensitivity[i, j] * dp[j]
         z[1 + nd + i] += acc
     single = fmap.itemsize == 4  # float32 maps: their products in float32 (see _gradient)
+    stress = np.empty((fmap.shape[0], 6))  # the gradient along W only where the update ends (the indicator's)
     energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w, det_max,
-                                  single)
+                                  single, stress)
     dq = np.empty(r)
     for i in range(r):  # Newton correction with the last refreshed H_qq
         acc = 0.0
@@ -251,7 +292,7 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         for i in range(r):
             z[1 + nd + i] += dq[i]
         energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w,
-                                      det_max, single)
+                                      det_max, single, stress[:0])
         evals = 2
         a = hqq_inv @ grad[1 + nd:]
         by = hqq_inv @ (grad[1 + nd:] - g1)
@@ -263,6 +304,8 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         if last > 0.1 * big:
             slow = 1.0
         big = last
+    else:
+        _enrichment(wmap, xi, stress, grad_w, single)
     res = 0.0
     de = 0.0
     for i in range(r):

@@ -78,6 +78,33 @@ def test_reduced_gradient_is_the_derivative_of_the_reduced_energy(reduced_points
     assert np.abs(grad_m).max() > 0 and np.abs(grad_w).max() > 0
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_an_update_sums_the_gradient_along_w_from_the_stresses_it_kept(reduced_points, dtype):
+    """An update's first evaluation leaves the gradient along W (the indicator's) for later, keeping each
+    point's weighted stress (``_gradient`` with rows in ``stress``), and sums it over the enrichment's maps
+    alone when no second evaluation follows (``_enrichment``): the same gradient as an evaluation that
+    sums it, in float64 and in the float32 arithmetic of float32 maps, and the same rest."""
+    model, fmap, wmap, xi, unit = reduced_points
+    fmap, wmap, xi = fmap.astype(dtype), wmap.astype(dtype), xi.copy()
+    xi[:3] = 0.0  # monitor points too
+    held = np.zeros(xi.size, dtype=bool)
+    z = np.array([1.0, 0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.2])
+    maxwell = np.array([2e4, 3e4, 0.0])
+    single, y = dtype == np.float32, model.yeoh
+    outs = []
+    for stress in (np.empty((0, 6)), np.full((xi.size, 6), np.nan)):
+        out = (np.empty(8), np.empty(3), np.full(3, np.nan), np.empty(3))
+        energy, sigma = rom_kernels._gradient(fmap, wmap, xi, unit, held, z, maxwell, y.c10, y.c20, y.c30, *out,
+                                              single, stress)
+        if stress.size:
+            assert np.all(stress[:3] == 0.0) and np.isfinite(stress).all()
+            rom_kernels._enrichment(wmap, xi, stress, out[2], single)
+        outs.append((energy, sigma, *out))
+    for now, deferred in zip(*outs):
+        np.testing.assert_allclose(deferred, now, rtol=1e-13, atol=0)
+    assert np.abs(outs[0][4]).max() > 0
+
+
 @pytest.mark.parametrize("blas", [True, False])
 def test_compiled_reduced_hessian_equals_the_numpy_reference_and_the_gradient_difference(reduced_points, blas):
     """Both ways of summing the points (BLAS products, a rank-6 update per point)."""
