@@ -172,21 +172,15 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
             stress[p, 0], stress[p, 1], stress[p, 2] = p0, p1, p2
             stress[p, 3], stress[p, 4], stress[p, 5] = p3, p4, p5
         if not single:
-            for j in range(nc):  # one pass along the row (vector instructions)
-                grad[j] += (p0 * fmap[p, 0, j] + p1 * fmap[p, 1, j] + p2 * fmap[p, 2, j] + p3 * fmap[p, 3, j]
-                            + p4 * fmap[p, 4, j] + p5 * fmap[p, 5, j])
-            for j in range(nw):
-                grad_w[j] += (p0 * wmap[p, 0, j] + p1 * wmap[p, 1, j] + p2 * wmap[p, 2, j] + p3 * wmap[p, 3, j]
-                              + p4 * wmap[p, 4, j] + p5 * wmap[p, 5, j])
+            _add_product(grad, fmap, p, p0, p1, p2, p3, p4, p5)
+            if not defer:
+                _add_product(grad_w, wmap, p, p0, p1, p2, p3, p4, p5)
             continue
         q0, q1, q2 = np.float32(p0), np.float32(p1), np.float32(p2)
         q3, q4, q5 = np.float32(p3), np.float32(p4), np.float32(p5)
-        for j in range(nc):
-            g32[j] += (q0 * fmap[p, 0, j] + q1 * fmap[p, 1, j] + q2 * fmap[p, 2, j] + q3 * fmap[p, 3, j]
-                       + q4 * fmap[p, 4, j] + q5 * fmap[p, 5, j])
-        for j in range(nw):
-            gw32[j] += (q0 * wmap[p, 0, j] + q1 * wmap[p, 1, j] + q2 * wmap[p, 2, j] + q3 * wmap[p, 3, j]
-                        + q4 * wmap[p, 4, j] + q5 * wmap[p, 5, j])
+        _add_product(g32, fmap, p, q0, q1, q2, q3, q4, q5)
+        if not defer:
+            _add_product(gw32, wmap, p, q0, q1, q2, q3, q4, q5)
         block += 1
         if block == SINGLE_BLOCK:
             _flush(g32, grad)
@@ -196,6 +190,15 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
         _flush(g32, grad)
         _flush(gw32, grad_w)
     return energy, sigma_min
+
+
+@numba.njit(inline="always", **_JIT)
+def _add_product(out, maps, p, p0, p1, p2, p3, p4, p5):
+    """``out += A_p^T [p0, ..., p5]`` for the maps ``A_p`` of point ``p`` (one pass along the rows: vector
+    instructions, in the arithmetic of the maps and the ``p``'s)."""
+    for j in range(maps.shape[2]):
+        out[j] += (p0 * maps[p, 0, j] + p1 * maps[p, 1, j] + p2 * maps[p, 2, j] + p3 * maps[p, 3, j]
+                   + p4 * maps[p, 4, j] + p5 * maps[p, 5, j])
 
 
 @numba.njit(inline="always", **_JIT)
@@ -211,15 +214,10 @@ def _enrichment(wmap, xi, stress, grad_w, single):
             continue
         p0, p1, p2, p3, p4, p5 = stress[p, 0], stress[p, 1], stress[p, 2], stress[p, 3], stress[p, 4], stress[p, 5]
         if not single:
-            for j in range(nw):
-                grad_w[j] += (p0 * wmap[p, 0, j] + p1 * wmap[p, 1, j] + p2 * wmap[p, 2, j] + p3 * wmap[p, 3, j]
-                              + p4 * wmap[p, 4, j] + p5 * wmap[p, 5, j])
+            _add_product(grad_w, wmap, p, p0, p1, p2, p3, p4, p5)
             continue
-        q0, q1, q2 = np.float32(p0), np.float32(p1), np.float32(p2)
-        q3, q4, q5 = np.float32(p3), np.float32(p4), np.float32(p5)
-        for j in range(nw):
-            gw32[j] += (q0 * wmap[p, 0, j] + q1 * wmap[p, 1, j] + q2 * wmap[p, 2, j] + q3 * wmap[p, 3, j]
-                        + q4 * wmap[p, 4, j] + q5 * wmap[p, 5, j])
+        _add_product(gw32, wmap, p, np.float32(p0), np.float32(p1), np.float32(p2), np.float32(p3), np.float32(p4),
+                     np.float32(p5))
         block += 1
         if block == SINGLE_BLOCK:
             _flush(gw32, grad_w)
