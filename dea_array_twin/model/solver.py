@@ -56,6 +56,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
+import numba
 import numpy as np
 
 from .bias import BiasRangeError
@@ -329,20 +330,27 @@ def _extrapolate(scale: float, ratio: float | None, last: np.ndarray, before: np
     ``lambda dq_n`` alone: second order), and exact for a reversal (``lambda = -1``).
     ``ratio`` None: the secant.  ``slope``: ``dq / dlambda`` at ``scale`` instead.
     """
-    coefficients = _path_coefficients(scale, _path_basis(_quadratic_nodes(ratio)), slope)
+    nodes = _quadratic_nodes(ratio)
+    coefficients = _path_coefficients(scale, _path_basis(nodes, np.arange(nodes.size)), slope)
     return _on_path(coefficients, [last] if ratio is None else [last, before])
 
 
-def _quadratic_nodes(ratio: float | None) -> tuple[float, ...]:
+def _quadratic_nodes(ratio: float | None) -> np.ndarray:
     """Path parameters of the last two states (``ratio`` None) or three (:func:`_extrapolate`)."""
-    return (0.0, -1.0) if ratio is None else (0.0, -1.0, -1.0 - ratio)
+    return np.array((0.0, -1.0) if ratio is None else (0.0, -1.0, -1.0 - ratio))
 
 
-def _path_basis(nodes: Sequence[float], positions: Sequence[int] | None = None) -> list[list[float]]:
+#: Compiled (numba) for the scalar algebra of the continuation: a few numbers each, where numpy's and the
+#: interpreter's per-call costs were most of an update's continuation (0.08 of ~1.2 ms, docs/architecture.md).
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@numba.njit(**_JIT)
+def _path_basis(nodes: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """``N`` of the polynomial through states at the path parameters ``nodes`` (``nodes[0] = 0``: the last).
 
     With the states given by their changes ``c_i = q_i - q_{i+1}`` (the newest first) and
-    ``nodes[j]`` the parameter of state ``q_{p_j}``, ``p = positions`` (default ``0, 1, 2, ...``;
+    ``nodes[j]`` the parameter of state ``q_{p_j}``, ``p = positions`` (``0, 1, 2, ...`` unless
     a state that repeats a newer one's command is left out), the polynomial with
     ``P(t_j) = q_{p_j}`` is
 
@@ -350,29 +358,43 @@ def _path_basis(nodes: Sequence[float], positions: Sequence[int] | None = None) 
 
     where ``N_mi = sum_{j: p_j > i} a_mj``, ``a_mj`` the coefficient of ``lambda^m`` in the
     Lagrange polynomial ``l_j`` of ``t_j`` (``q_p - q_0 = -(c_0 + ... + c_{p-1})``; ``l_j(0) = 0``
-    for ``j >= 1``).  Plain Python: ``M`` is at most 3 here, and numpy's call overhead is what it
-    costs.
+    for ``j >= 1``).  Returns ``N``, shape ``(M, p_last)``.
     """
-    degree = len(nodes) - 1
-    positions = range(len(nodes)) if positions is None else positions
-    lagrange = []  # lagrange[j - 1][m]: coefficient of lambda^m in l_j
+    degree = nodes.size - 1
+    lagrange = np.zeros((degree, degree + 1))  # lagrange[j - 1, m]: coefficient of lambda^m in l_j
+    poly, product = np.empty(degree + 1), np.empty(degree + 1)
     for j in range(1, degree + 1):
-        poly = [1.0]
-        for i, t in enumerate(nodes):
+        poly[:] = 0.0
+        poly[0] = 1.0
+        length = 1
+        for i in range(nodes.size):
             if i != j:  # poly *= (lambda - t) / (t_j - t)
+                t = nodes[i]
                 scale = 1.0 / (nodes[j] - t)
-                poly = [scale * (lo - t * hi) for lo, hi in zip([0.0] + poly, poly + [0.0])]
-        lagrange.append(poly)
-    return [[sum(lagrange[j - 1][m] for j in range(1, degree + 1) if positions[j] > i) for i in range(positions[-1])]
-            for m in range(1, degree + 1)]
+                for m in range(length + 1):
+                    product[m] = scale * ((poly[m - 1] if m > 0 else 0.0) - t * (poly[m] if m < length else 0.0))
+                length += 1
+                poly[:length] = product[:length]
+        lagrange[j - 1] = poly
+    basis = np.zeros((degree, positions[-1]))
+    for m in range(1, degree + 1):
+        for i in range(positions[-1]):
+            for j in range(1, degree + 1):
+                if positions[j] > i:
+                    basis[m - 1, i] += lagrange[j - 1, m]
+    return basis
 
 
-def _path_coefficients(lam: float, basis: list[list[float]], slope: bool = False) -> list[float]:
+@numba.njit(**_JIT)
+def _path_coefficients(lam: float, basis: np.ndarray, slope: bool = False) -> np.ndarray:
     """``-u(lambda) N`` of :func:`_path_basis` (``slope``: ``-u'(lambda) N``): the polynomial's change
     from the last state (its slope) is ``sum_i c_i changes[i]`` (:func:`_on_path`)."""
-    degree = len(basis)
-    powers = [m * lam ** (m - 1) for m in range(1, degree + 1)] if slope else [lam ** m for m in range(1, degree + 1)]
-    return [-sum(powers[m] * basis[m][i] for m in range(degree)) for i in range(len(basis[0]))]
+    degree, count = basis.shape
+    out = np.zeros(count)
+    for i in range(count):
+        for m in range(degree):
+            out[i] -= ((m + 1) * lam**m if slope else lam ** (m + 1)) * basis[m, i]
+    return out
 
 
 def _on_path(coefficients: Sequence[float], changes: Sequence[np.ndarray]) -> np.ndarray:
@@ -945,56 +967,70 @@ def _iterations_left(norm: float, tol: float, ratio: float) -> float:
 
 
 def _on_command_path(dp_new: np.ndarray, changes: Sequence[np.ndarray],
-                     scale: float) -> tuple[list[float], np.ndarray] | None:
+                     scale: float) -> tuple[np.ndarray, np.ndarray] | None:
     """``(c, P(lambda))``: the point of the polynomial through the last commands nearest to the new one,
     with its coefficients ``c`` (:func:`_path_coefficients`) for :func:`_on_path` of the states to it.
 
     The last prescribed changes ``changes`` (the last solve's first) are chords of a path,
     their commands at the path parameters :func:`_path_nodes`; ``P(lambda) = sum_i c_i(lambda)
-    changes[i]`` (:func:`_path_basis`), and ``lambda`` minimises ``|P(lambda) - dp_new|``: three
-    Gauss-Newton steps ``P'.(P - dp_new) / P'.P'`` from the projection ``scale``, both dot
-    products polynomials in ``lambda`` whose coefficients come from the dot products of ``P``'s
-    monomial coefficients with each other and with ``dp_new``.  Along one direction ``P(lambda) =
-    lambda dp`` and ``lambda = scale``.  None when the commands are not apart (:func:`_path_nodes`)
-    or ``lambda`` is out of reach (:func:`_within_reach`).
+    changes[i]`` (:func:`_path_basis`), and ``lambda`` minimises ``|P(lambda) - dp_new|``
+    (:func:`_nearest_on_path`).  Along one direction ``P(lambda) = lambda dp`` and ``lambda =
+    scale``.  None when the commands are not apart (:func:`_path_nodes`) or ``lambda`` is out of
+    reach (:func:`_within_reach`).
     """
-    stacked = np.array(changes)
-    path = _path_nodes((stacked @ stacked.T).tolist())
-    if path is None:
+    coefficients = _nearest_on_path(np.array(changes), dp_new, scale)
+    if coefficients.size == 0:
         return None
-    nodes, positions = path
-    changes, stacked = changes[:positions[-1]], stacked[:positions[-1]]  # states past the last kept one: out
-    basis, k = _path_basis(nodes, positions), len(nodes) - 1
-    monomials = -(np.array(basis) @ stacked)  # P(lambda) = sum_m lambda^m monomials[m - 1]
-    v_gram, v_dp = (monomials @ monomials.T).tolist(), (monomials @ dp_new).tolist()
+    return coefficients, _on_path(coefficients, changes)
+
+
+@numba.njit(**_JIT)
+def _nearest_on_path(changes: np.ndarray, dp_new: np.ndarray, scale: float) -> np.ndarray:
+    """The coefficients ``c`` of :func:`_on_command_path` (empty: None there), the changes as the rows of
+    ``changes``.
+
+    With ``N`` of :func:`_path_basis`, ``P(lambda) = sum_m lambda^m M_m``, ``M = -N C`` the monomial
+    coefficients: ``P'.(P - dp_new)`` and ``P'.P'`` are polynomials in ``lambda`` whose coefficients
+    come from the dot products of the ``M_m`` with each other and with ``dp_new``; three Gauss-Newton
+    steps ``P'.(P - dp_new) / P'.P'`` from the projection ``scale``.
+    """
+    none = np.empty(0)
+    nodes, positions = _path_nodes(changes @ changes.T)
+    if nodes.size == 0:
+        return none
+    basis = _path_basis(nodes, positions)
+    k, used = basis.shape
+    monomials = -(basis @ changes[:used])
+    v_gram, v_dp = monomials @ monomials.T, monomials @ dp_new
     # P'.(P - dp_new) and P'.P' as polynomials in lambda (coefficients of lambda^0, lambda^1, ...)
-    along, curvature = [0.0] * (2 * k), [0.0] * (2 * k - 1)
+    along, curvature = np.zeros(2 * k), np.zeros(2 * k - 1)
     for m in range(1, k + 1):
         along[m - 1] -= m * v_dp[m - 1]
         for n in range(1, k + 1):
-            along[m + n - 1] += m * v_gram[m - 1][n - 1]
-            curvature[m + n - 2] += m * n * v_gram[m - 1][n - 1]
+            along[m + n - 1] += m * v_gram[m - 1, n - 1]
+            curvature[m + n - 2] += m * n * v_gram[m - 1, n - 1]
     lam = scale
     for _ in range(3):
         slope2 = _horner(curvature, lam)
         if not slope2 > 0.0:
-            return None
+            return none
         lam -= _horner(along, lam) / slope2
     if not (math.isfinite(lam) and _within_reach(lam, nodes)):
-        return None
-    coefficients = _path_coefficients(lam, basis)
-    return coefficients, _on_path(coefficients, changes)
+        return none
+    return _path_coefficients(lam, basis, False)
 
 
-def _horner(coefficients: Sequence[float], lam: float) -> float:
+@numba.njit(**_JIT)
+def _horner(coefficients: np.ndarray, lam: float) -> float:
     """The polynomial ``sum_e coefficients[e] lambda^e`` at ``lam``."""
     out = 0.0
-    for c in reversed(coefficients):
-        out = out * lam + c
+    for e in range(coefficients.size - 1, -1, -1):
+        out = out * lam + coefficients[e]
     return out
 
 
-def _path_nodes(gram: list[list[float]]) -> tuple[tuple[float, ...], tuple[int, ...]] | None:
+@numba.njit(**_JIT)
+def _path_nodes(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(nodes, positions)``: the path parameters ``0, -1, -1 - a_1, ...`` of the last commands, from the
     dot products ``gram`` of their changes (the last solve's first), and which states they are.
 
@@ -1002,28 +1038,43 @@ def _path_nodes(gram: list[list[float]]) -> tuple[tuple[float, ...], tuple[int, 
     1e-6 of its length: a path that turned back comes over the same parameters again), else the
     ratio of their lengths (chord-length spacing along a curve).  A state whose parameter is a
     newer state's (within 1e-6: the same command, so the same state without biased units, as
-    when a back-and-forth motion retraces its path) is left out, the newer one kept.  None when
-    the parameters do not spread the states apart (:func:`_apart`).
+    when a back-and-forth motion retraces its path) is left out, the newer one kept.  Empty
+    arrays when the parameters do not spread the states apart (:func:`_apart`).
     """
-    last2 = gram[0][0]
+    k = gram.shape[0]
+    nodes, positions = np.empty(k + 1), np.empty(k + 1, np.int64)
+    last2 = gram[0, 0]
     if not last2 > 0.0:
-        return None
-    nodes, positions, node = [0.0, -1.0], [0, 1], -1.0
-    for i in range(1, len(gram)):
-        ratio = gram[i][0] / last2
-        off = gram[i][i] - ratio * gram[i][0]  # |c_i - ratio c_0|^2
-        node -= ratio if off <= 1e-12 * gram[i][i] else math.sqrt(gram[i][i] / last2)
-        if all(abs(node - t) > 1e-6 for t in nodes):
-            nodes.append(node)
-            positions.append(i + 1)
-    return (tuple(nodes), tuple(positions)) if _apart(nodes) else None
+        return nodes[:0], positions[:0]
+    nodes[0], nodes[1], positions[0], positions[1] = 0.0, -1.0, 0, 1
+    count, node = 2, -1.0
+    for i in range(1, k):
+        ratio = gram[i, 0] / last2
+        off = gram[i, i] - ratio * gram[i, 0]  # |c_i - ratio c_0|^2
+        node -= ratio if off <= 1e-12 * gram[i, i] else math.sqrt(gram[i, i] / last2)
+        new = True
+        for c in range(count):
+            new = new and abs(node - nodes[c]) > 1e-6
+        if new:
+            nodes[count], positions[count] = node, i + 1
+            count += 1
+    if not _apart(nodes[:count]):
+        return nodes[:0], positions[:0]
+    return nodes[:count], positions[:count]
 
 
-def _apart(nodes: Sequence[float]) -> bool:
+@numba.njit(**_JIT)
+def _apart(nodes: np.ndarray) -> bool:
     """Whether path parameters (in last changes) spread a polynomial's states apart: no two within
     0.2, no change between consecutive ones longer than 10."""
-    return (all(abs(s - t) >= 0.2 for i, s in enumerate(nodes) for t in nodes[:i])
-            and all(abs(s - t) <= 10.0 for s, t in zip(nodes, nodes[1:])))
+    for i in range(nodes.size):
+        for j in range(i):
+            if not abs(nodes[i] - nodes[j]) >= 0.2:
+                return False
+    for i in range(nodes.size - 1):
+        if not abs(nodes[i] - nodes[i + 1]) <= 10.0:
+            return False
+    return True
 
 
 def _truncated(record: PathRecord | None, depth: int) -> PathRecord | None:
@@ -1069,12 +1120,13 @@ REACH = 3.0
 SECANT_REACH = 2.0
 
 
-def _within_reach(scale: float, nodes: Sequence[float]) -> bool:
+@numba.njit(**_JIT)
+def _within_reach(scale: float, nodes: np.ndarray) -> bool:
     """Whether ``lambda = scale`` lies within ``REACH`` spans of the last state, the span being
     that of the path parameters ``nodes`` of the states the continuation passes through (``[-1, 0]``,
     or with a third state also ``-1 - a``, ...): near a turning point of a motion the last step
     is short and the ones before it may span the new one."""
-    return abs(scale) <= REACH * (max(nodes) - min(nodes))
+    return abs(scale) <= REACH * (nodes.max() - nodes.min())
 
 
 def _balanced(res: np.ndarray, n_free: int, r_tol: float, x_tol: float, fact: Factorisation | None,
