@@ -407,6 +407,17 @@ def _on_path(coefficients: Sequence[float], changes: Sequence[np.ndarray]) -> np
     return out
 
 
+def compile_continuation() -> None:
+    """Compile the continuation's kernels (or load them from numba's on-disk cache) with the types a solve
+    gives them, so that no update of a live twin does (:meth:`.twin.ArrayTwin.warm_up`)."""
+    changes = [np.array([1.0, 0.0, 0.0]), np.array([0.9, 0.3, 0.0]), np.array([0.7, 0.6, 0.1])]
+    _on_command_path(np.array([1.0, 0.2, 0.0]), changes, 1.0)
+    _extrapolate(0.5, None, changes[0], None)
+    _extrapolate(0.5, 0.8, changes[0], changes[1], slope=True)
+    _within_reach(0.5, _quadratic_nodes(0.8))
+    _usable(0.8)
+
+
 @dataclass
 class SolveStats:
     """What one solve did."""

@@ -49,7 +49,14 @@ from .dynamics import NewmarkStep
 from .kernels import solve_small
 from .membrane import BIASED, DRIVEN, FREE, MembraneModel, held
 from .snap import Snap
-from .solver import ConvergenceError, EquilibriumSolver, Factorisation, NewtonSettings, SolveCancelled
+from .solver import (
+    ConvergenceError,
+    EquilibriumSolver,
+    Factorisation,
+    NewtonSettings,
+    SolveCancelled,
+    compile_continuation,
+)
 
 __all__ = ["ArrayTwin", "TwinResult", "ConvergenceError", "BIASED", "DRIVEN", "FREE", "SolveCancelled",
            "command_error"]
@@ -295,12 +302,14 @@ class ArrayTwin:
         The first solve of a process compiles them otherwise: ~10 s on the first run after
         an install, ~0.3 s later.  A live twin calls this before its first update.  It
         makes one checked solve with every unit driven to 1 mm at 0 V and one of the small dense
-        systems of biased units' heights, then :meth:`reset`: the twin is left as a new one.
+        systems of biased units' heights, compiles the continuation's algebra, then :meth:`reset`:
+        the twin is left as a new one.
         """
         n = self.n_units
         self.solve(np.full(n, min(1e-3, 0.1 * self.config.scaled("max_displacement"))), np.zeros(n),
                    modes=(DRIVEN,) * n, check_stability=True, force=np.zeros(n))
         solve_small(np.eye(1), np.ones(1))
+        compile_continuation()
         self.reset()
 
     @property

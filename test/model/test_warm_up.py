@@ -4,8 +4,8 @@ The node warms its twin up before it says it is ready: a first update that compi
 an install) outlasts the node's stop, and a process that ends with the solver thread still
 compiling may exit with code 120 (Python's flush of stdout fails at finalisation).  Checked in a
 fresh interpreter, where nothing is compiled or loaded yet: every solve the node makes (checked
-and unchecked, driven, free, biased, with voltage, dynamic steps) after ``warm_up`` adds no
-signature to any kernel.
+and unchecked, driven, free, biased, with voltage, dynamic steps, a path continued through four
+states) after ``warm_up`` adds no signature to any kernel (the continuation's among them).
 """
 
 import json
@@ -21,10 +21,10 @@ import json, sys
 import numba
 import numpy as np
 from dea_array_twin import ArrayConfig, ArrayTwin
-from dea_array_twin.model import kernels, ldl, multifrontal
+from dea_array_twin.model import kernels, ldl, multifrontal, solver
 
 def compiled():
-    return {f"{m.__name__}.{name}": len(f.signatures) for m in (kernels, ldl, multifrontal)
+    return {f"{m.__name__}.{name}": len(f.signatures) for m in (kernels, ldl, multifrontal, solver)
             for name, f in vars(m).items() if isinstance(f, numba.core.registry.CPUDispatcher)}
 
 coarse = json.loads(sys.argv[1])
@@ -40,6 +40,8 @@ twin.solve([0.0, 0.0, 0.004], [1000.0, 1500.0, 0.0], check_stability=True)
 twin.solve([0.0, 0.0, 0.0041], check_stability=False)
 twin.solve([0.0, 0.005, 0.004], modes=("free", "driven", "driven"), check_stability=False)
 twin.solve([0.0, 0.0051, 0.004], modes=("free", "driven", "driven"), check_stability=False)
+for d2, d3 in ((0.0052, 0.0041), (0.0053, 0.0043), (0.0054, 0.0046)):  # the cubic continuation
+    twin.solve([0.0, d2, d3], modes=("free", "driven", "driven"), check_stability=False)
 twin.reset()
 for i in range(3):
     twin.step(0.002, [0.0, 0.0, 0.001 * i], [0.0, 800.0, 0.0], force=[0.0, 0.01 * i, 0.0])
