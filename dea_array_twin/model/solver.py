@@ -455,10 +455,12 @@ class EquilibriumSolver:
         #: Set by a twin that refreshes its tangent in a worker thread (``background_tangent`` of
         #: :class:`.twin.ArrayTwin`): a tangent that contracts by less than ``contraction`` is then kept,
         #: as in a checked load step, while the iterations it still needs cost less than a factorisation
-        #: (a refactorisation here would hold the solve for it), and :attr:`went_stale` says so.
+        #: (a refactorisation here would hold the solve for it).
         self.refresh_elsewhere = False
-        #: Whether a solve kept such a tangent (with :attr:`refresh_elsewhere`) since this was cleared.
-        self.went_stale = False
+        #: The largest residual ratio (after / before) of a Newton step on a tangent from an earlier
+        #: iterate, over the steps that started above the tolerance, since this was set to 0: how stale the
+        #: tangent has gone (the twin refreshes it elsewhere above :data:`.twin.BACKGROUND_CONTRACTION`).
+        self.stale_contraction = 0.0
 
     def disk_groups(self, modes: tuple[str, ...]) -> list[np.ndarray]:
         """Index sets into the prescribed dofs of each driven or biased disk's z dofs (rigid moves)."""
@@ -580,6 +582,8 @@ class EquilibriumSolver:
             if border is None and alpha == 1.0:
                 fact.step_length = _step_length(dx, res, res_trial, scale, fact.step_length)
             ratio = norm_trial / norm if norm > 0 else 0.0
+            if not fresh and norm > r_tol:  # a step from a residual at its round-off floor says nothing
+                self.stale_contraction = max(self.stale_contraction, ratio)
             x, r, res, point, norm = trial, r_trial, res_trial, point_trial, norm_trial
             # With contraction ratio q the remaining error is about |dx| q / (1 - q)
             # (a geometric series): that is what is tested against the tolerance.
@@ -592,7 +596,6 @@ class EquilibriumSolver:
             slow = ratio > s.contraction and not converged
             stale = slow and not ((checked or self.refresh_elsewhere)
                                   and _iterations_left(norm, r_tol, ratio) <= s.factorisation_cost)
-            self.went_stale |= slow and not stale and self.refresh_elsewhere
             if not s.modified_newton or (stale and not (border is not None and border.skipped_solve)):
                 fact = None
             fresh = False

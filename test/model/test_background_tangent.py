@@ -12,6 +12,7 @@ import numpy as np
 from conftest import COARSE
 
 from dea_array_twin import ArrayConfig, ArrayTwin
+from dea_array_twin.model import twin as twin_module
 from dea_array_twin.model.solver import Factorisation, NewtonSettings, SolveStats
 
 DRIVEN3 = ("driven",) * 3
@@ -105,6 +106,43 @@ def test_a_stale_tangent_is_kept_until_its_background_refresh_is_in():
     assert background.tangents["installed"] >= 3 and background.tangents["failed"] == 0
 
 
+def _node_stream(twin: ArrayTwin, updates: int) -> tuple[list[int], list[bool]]:
+    """The node's stream (a 1 Hz sine at 500 updates a second) through ``twin``, each update after the
+    tangent under way is in: its Newton iterations, and whether it started a background tangent."""
+    iterations, started = [], []
+    for i in range(updates):
+        if twin._pending is not None:
+            twin._pending.result(timeout=60)
+        res = twin.solve(_sine(i, 500), 0.0, DRIVEN3, check_stability=False)
+        iterations.append(res.iterations)
+        started.append(twin._pending is not None)
+        assert started[-1] == (i > 0 and res.factorisations == 0 and (
+            res.iterations >= twin_module.BACKGROUND_ITERATIONS
+            or twin.solver.stale_contraction > twin_module.BACKGROUND_CONTRACTION)), i
+    return iterations[1:], started  # the first update jumps from the flat state
+
+
+def test_a_tangent_going_stale_is_refreshed_before_updates_need_a_second_iteration(monkeypatch):
+    """A step on the tangent that leaves more than BACKGROUND_CONTRACTION of its residual starts a
+    background tangent although the update converged in one iteration; on the node's stream that
+    leaves 1 of 299 updates with two iterations (measured; 21 with the iteration rule alone, which
+    refreshes 3 times against 17).  Each update is checked against the rule."""
+    cfg = ArrayConfig(**COARSE)
+    counts = {}
+    for rule in ("contraction", "iterations only"):
+        if rule == "iterations only":
+            monkeypatch.setattr(twin_module, "BACKGROUND_CONTRACTION", math.inf)
+        twin = ArrayTwin(cfg, background_tangent=True)
+        try:
+            iterations, started = _node_stream(twin, 300)
+        finally:
+            twin.close()
+        counts[rule] = (sum(i > 1 for i in iterations), sum(started))
+        assert twin.tangents["failed"] == 0
+    assert counts["contraction"][0] <= 3 and counts["iterations only"][0] >= 10, counts
+    assert counts["contraction"][1] > counts["iterations only"][1], counts
+
+
 def test_a_background_tangent_comes_with_the_influence_vectors_of_the_disks(monkeypatch):
     """The worker also solves for the driven disks' influence vectors (the predictor's), so an update
     that starts from its tangent solves only for its Newton steps (else three more solves, ~0.9 ms on
@@ -170,3 +208,4 @@ def test_a_stability_check_in_the_worker_gives_the_verdict_of_a_checked_solve():
     plain = ArrayTwin(cfg)
     plain.solve([0.001, 0.0, 0.0], 0.0, DRIVEN3)
     assert plain.check_in_background() is None
+
