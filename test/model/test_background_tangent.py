@@ -6,9 +6,12 @@ under way (as a spare core would have finished it), so the counts are exact.
 """
 
 import math
+import os
+import sys
 import threading
 
 import numpy as np
+import pytest
 from conftest import COARSE
 
 from dea_array_twin import ArrayConfig, ArrayTwin
@@ -209,3 +212,16 @@ def test_a_stability_check_in_the_worker_gives_the_verdict_of_a_checked_solve():
     plain.solve([0.001, 0.0, 0.0], 0.0, DRIVEN3)
     assert plain.check_in_background() is None
 
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+def test_the_worker_thread_runs_at_a_lower_priority_than_the_updates():
+    """The worker's refreshes and checks yield the core to the updates: its nice value is the
+    process's plus BACKGROUND_NICE (at most 19); the calling thread's is untouched."""
+    twin = ArrayTwin(ArrayConfig(**COARSE), background_tangent=True)
+    own = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    try:
+        worker = twin._pool.submit(lambda: os.getpriority(os.PRIO_PROCESS, threading.get_native_id())).result(60)
+    finally:
+        twin.close()
+    assert worker == min(19, own + twin_module.BACKGROUND_NICE)
+    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == own
