@@ -29,10 +29,11 @@ import numpy as np
 from .assembly import LANES, Discretisation, PointState, SparsePattern
 from .material import Yeoh
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+#: Options of every compiled kernel of the model (cached on disk, the GIL released, numpy's error model).
+JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def _gather(x, elements, e0, width, xb):
     """``xb[n, i, j]``: coordinate ``i`` of node ``n`` of element ``e0 + j`` (``j < width``, the block's elements)."""
     for n in range(elements.shape[1]):
@@ -42,7 +43,7 @@ def _gather(x, elements, e0, width, xb):
                 xb[n, i, j] = x[base + i]
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def _deformation(xb, gb, q, width, f):
     """``f[2 i + a, j] = F_ia`` at point ``q`` of lane ``j``: ``sum_n x_ni dN_n/dX_a`` (``gb``: the block)."""
     f[:, :width] = 0.0
@@ -54,7 +55,7 @@ def _deformation(xb, gb, q, width, f):
                 f[2 * i + 1, j] += xb[n, i, j] * d1
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def _stress(f, j, c10, c20, c30, k):
     """``(c0, c1, c2, det C, Y', Y'', g0, g1, g2)`` of lane ``j`` of ``f``.
 
@@ -72,7 +73,7 @@ def _stress(f, j, c10, c20, c30, k):
     return c0, c1, c2, det, dy, ddy, dy - a * c1, dy - a * c0, 2.0 * a * c2
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def _add_forces(gb, q, width, f, s, rb):
     """``rb[n, i, j] += (F S dN_n)_i`` at point ``q`` (``s``: ``w S11, w S22, w S12`` per lane)."""
     for n in range(gb.shape[0]):
@@ -84,7 +85,7 @@ def _add_forces(gb, q, width, f, s, rb):
                 rb[n, i, j] += f[2 * i, j] * sd0 + f[2 * i + 1, j] * sd1
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def _scatter(elements, e0, width, rb, r):
     """``r`` += the block's element forces ``rb``."""
     for n in range(elements.shape[1]):
@@ -94,7 +95,7 @@ def _scatter(elements, e0, width, rb, r):
                 r[base + i] += rb[n, i, j]
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
     """Fill ``r`` (zeroed here), ``c`` and ``g`` (shape (ne, nq, 3)) of positions ``x``.
 
@@ -128,7 +129,7 @@ def _residual(x, elements, grad, wt, maxwell, c10, c20, c30, r, c, g):
         _scatter(elements, e0, width, rb, r)
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def _add_row(values, at, v0, v1, v2):
     """``values[at:at + 3] += (v0, v1, v2)``: one row of a 3x3 node block."""
     values[at] += v0
@@ -136,7 +137,7 @@ def _add_row(values, at, v0, v1, v2):
     values[at + 2] += v2
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, values):
     """Fill ``r``, ``c``, ``g`` and the global tangent nonzeros ``values`` (zeroed here).
 
@@ -239,7 +240,7 @@ def _tangent(x, elements, grad, wt, maxwell, c10, c20, c30, position, r, c, g, v
                         _add_row(values, position[e, 3 * nb + 2, na], k02, k12, k22)
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _min_principal_stress(c, g, skip):
     """Smallest in-plane principal Cauchy stress over the points of elements not ``skip``-ped.
 
@@ -262,7 +263,7 @@ def _min_principal_stress(c, g, skip):
     return low
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _energy(c, wt, maxwell, c10, c20, c30):
     """``sum_q t0 w_q Psi(c_q)`` with ``Psi = Y(I - 3) - k det C`` (:func:`.material.energy_density`)."""
     ne, nq, _ = c.shape
@@ -275,7 +276,7 @@ def _energy(c, wt, maxwell, c10, c20, c30):
     return total
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _electrode_sums(c, weight, element_unit, area, peak):
     """Per unit ``k``: ``area[k] = sum_q w_q det C_q`` and ``peak[k] = max_q det C_q`` over the points of
     the elements with ``element_unit == k`` (passive ones, -1, skipped)."""
@@ -300,7 +301,7 @@ def electrode_sums(disc: Discretisation, point: PointState, n_units: int) -> tup
     return area, peak
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def solve_small(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``a^-1 b`` for small dense systems (the biased heights' ``n_b x n_b``, :mod:`.indenters`):
     LAPACK's gesv as in ``np.linalg.solve``, whose call costs ~10 us from Python, several times

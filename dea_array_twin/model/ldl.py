@@ -26,10 +26,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+from .kernels import JIT
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def elimination_tree(n, ap, ai):
     """Parent of each block column and the number of blocks below the diagonal in each column of ``L``.
 
@@ -51,7 +51,7 @@ def elimination_tree(n, ap, ai):
     return parent, counts
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def invert_pivot(d, dk):
     """Write ``D_k^-1`` of the symmetric 3x3 pivot ``d`` into ``dk``; return its negative eigenvalues.
 
@@ -81,7 +81,7 @@ def invert_pivot(d, dk):
     return (p0 < 0.0) + (p1 < 0.0) + (p2 < 0.0)
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def factor(n, ap, ai, ax, lp, parent, li, lx, dinv):
     """Fill ``li``, ``lx`` (``L`` by block columns) and ``dinv`` (``D_k^-1``).
 
@@ -154,7 +154,7 @@ def factor(n, ap, ai, ax, lp, parent, li, lx, dinv):
     return negative
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def solve(n, lp, li, lx, dinv, order, b, x):
     """``x = K^-1 b`` from the factors; ``order[i]`` is the node of block row ``i``."""
     y = np.empty((n, 3))

@@ -34,12 +34,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .kernels import JIT
 from .ldl import invert_pivot
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
-
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def postorder(parent):
     """A postorder of the forest ``parent`` (children in increasing order, then the node)."""
     n = parent.size
@@ -71,7 +70,7 @@ def postorder(parent):
     return order
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def row_pattern(n, ap, ai, parent, lp):
     """Row indices of each block column of ``L`` (ascending; ``lp`` from the column counts).
 
@@ -92,7 +91,7 @@ def row_pattern(n, ap, ai, parent, lp):
     return li
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def amalgamate(start, counts, parent):
     """Merge supernodes with their last child while few explicit zeros are stored (relaxed supernodes).
 
@@ -134,7 +133,7 @@ def amalgamate(start, counts, parent):
     return out
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def fronts(start, lp, li, parent):
     """Front node lists (``fp`` offsets into ``fn``), children counts, stack size and ``L``'s layout.
 
@@ -189,7 +188,7 @@ def fronts(start, lp, li, parent):
     return fp, fn, children, stack_size, 3 * largest, sp, si
 
 
-@numba.njit(inline="always", fastmath={"contract"}, **_JIT)
+@numba.njit(inline="always", fastmath={"contract"}, **JIT)
 def _update_block(f, r, t, wt, first, end):
     """``F(r:r+3, first:end) -= F(r:r+3, t:t+3) W(first:end, t:t+3)^T``: one node block row
     updated by one pivot block (``W^T`` stored in ``wt``).
@@ -209,7 +208,7 @@ def _update_block(f, r, t, wt, first, end):
         r2[j] -= a20 * x0 + a21 * x1 + a22 * x2
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def _extend_add(f, src, base, stride, rows, position):
     """Add the update matrix stored at ``src[base:]`` (row stride ``stride``, lower block triangle)
     of a child with update rows ``rows`` to the front ``f``, whose block row of node ``i`` is
@@ -232,7 +231,7 @@ def workspace(n: int, n_super: int, stack_size: int, largest: int) -> tuple:
             np.empty((largest, largest)))
 
 
-@numba.njit(inline="always", **_JIT)
+@numba.njit(inline="always", **JIT)
 def factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, s_begin, s_end,
                  stack, offset, waiting, state, position, buffers, wt):
     """Fill ``lx`` (``L`` in the block columns ``lp`` of :func:`row_pattern`) and ``dinv`` for the
@@ -330,7 +329,7 @@ def factor_range(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, s_
     return negative
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def factor_ranges(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begins, ends,
                   stack, offset, waiting, state, position, buffers, wt):
     """:func:`factor_range` over the ranges ``begins[i] .. ends[i] - 1`` in turn, on one stack:
@@ -345,7 +344,7 @@ def factor_ranges(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, b
     return negative
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def factor_top(values, bp, bi, bpos, start, fp, fn, children, lp, lx, dinv, begins, ends,
                a_stack, a_offset, a_waiting, a_state, b_stack, b_offset, b_waiting, b_state,
                stack, offset, waiting, state, position, buffers, wt):

@@ -41,9 +41,10 @@ import numba
 import numpy as np
 
 from .assembly import Discretisation
+from .kernels import JIT
 from .material import Yeoh, energy_derivatives
 
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy", "fastmath": {"reassoc", "contract"}}
+_JIT = {**JIT, "fastmath": {"reassoc", "contract"}}
 
 
 def point_maps(disc: Discretisation, elements: np.ndarray, points: np.ndarray, vectors: np.ndarray) -> np.ndarray:

@@ -61,7 +61,7 @@ import numpy as np
 
 from .bias import BiasRangeError
 from .indenters import IndenterBorder, IndenterLoad, negative_eigenvalues
-from .kernels import internal_forces, solve_small, tangent_values
+from .kernels import JIT, internal_forces, solve_small, tangent_values
 from .linsolve import BACKENDS, Factoriser, LDLFactor, factoriser
 from .membrane import BIASED, DRIVEN, MembraneModel, held
 from .snap import Snap, land_after_snap
@@ -340,12 +340,9 @@ def _quadratic_nodes(ratio: float | None) -> np.ndarray:
     return np.array((0.0, -1.0) if ratio is None else (0.0, -1.0, -1.0 - ratio))
 
 
-#: Compiled (numba) for the scalar algebra of the continuation: a few numbers each, where numpy's and the
-#: interpreter's per-call costs were most of an update's continuation (0.08 of ~1.2 ms, docs/architecture.md).
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
-
-
-@numba.njit(**_JIT)
+# The continuation's scalar algebra is compiled (:data:`.kernels.JIT`): a few numbers each, where numpy's and
+# the interpreter's per-call costs were most of an update's continuation (0.08 of ~1.2 ms, docs/architecture.md).
+@numba.njit(**JIT)
 def _path_basis(nodes: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """``N`` of the polynomial through states at the path parameters ``nodes`` (``nodes[0] = 0``: the last).
 
@@ -385,7 +382,7 @@ def _path_basis(nodes: np.ndarray, positions: np.ndarray) -> np.ndarray:
     return basis
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _path_coefficients(lam: float, basis: np.ndarray, slope: bool = False) -> np.ndarray:
     """``-u(lambda) N`` of :func:`_path_basis` (``slope``: ``-u'(lambda) N``): the polynomial's change
     from the last state (its slope) is ``sum_i c_i changes[i]`` (:func:`_on_path`)."""
@@ -998,7 +995,7 @@ def _on_command_path(dp_new: np.ndarray, changes: Sequence[np.ndarray],
     return coefficients, _on_path(coefficients, changes)
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _nearest_on_path(changes: np.ndarray, dp_new: np.ndarray, scale: float) -> np.ndarray:
     """The coefficients ``c`` of :func:`_on_command_path` (empty: None there), the changes as the rows of
     ``changes``.
@@ -1034,7 +1031,7 @@ def _nearest_on_path(changes: np.ndarray, dp_new: np.ndarray, scale: float) -> n
     return _path_coefficients(lam, basis, False)
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _horner(coefficients: np.ndarray, lam: float) -> float:
     """The polynomial ``sum_e coefficients[e] lambda^e`` at ``lam``."""
     out = 0.0
@@ -1043,7 +1040,7 @@ def _horner(coefficients: np.ndarray, lam: float) -> float:
     return out
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _path_nodes(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(nodes, positions)``: the path parameters ``0, -1, -1 - a_1, ...`` of the last commands, from the
     dot products ``gram`` of their changes (the last solve's first), and which states they are.
@@ -1077,7 +1074,7 @@ def _path_nodes(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return nodes[:count], positions[:count]
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _apart(nodes: np.ndarray) -> bool:
     """Whether path parameters (in last changes) spread a polynomial's states apart: no two within
     0.2, no change between consecutive ones longer than 10."""
@@ -1134,7 +1131,7 @@ REACH = 3.0
 SECANT_REACH = 2.0
 
 
-@numba.njit(**_JIT)
+@numba.njit(**JIT)
 def _within_reach(scale: float, nodes: np.ndarray) -> bool:
     """Whether ``lambda = scale`` lies within ``REACH`` spans of the last state, the span being
     that of the path parameters ``nodes`` of the states the continuation passes through (``[-1, 0]``,
