@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import time
 from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -71,6 +72,7 @@ from .actuator import UnitLoad
 from .bias import BiasRangeError
 from .config import BIASED, DRIVEN, ArrayConfig
 from .dynamics import NewmarkStep
+from .point_team import PointTeam
 from .reduced import ReducedModel, RomMismatchError, check_config
 from .rom_build import held_elements
 from .rom_kernels import classify, combine, evaluate, heights, hessian, point_maps, project, reduced_tangent, update
@@ -110,6 +112,11 @@ STALE_LIMIT = 2.0
 #: library loop's CPU per update went from 0.05 to 0.14 ms); 4-by-4, 173 columns 30 -> 7.3 ms, 273
 #: columns 57 -> 14 ms.
 BLAS_COLUMNS = 128
+#: Point maps (sampled and enrichment, bytes) from which ``threads=None`` shares the updates' evaluations
+#: with a helper thread on a second core (:class:`.point_team.PointTeam`): one core's memory bandwidth bounds
+#: an evaluation whose maps do not fit its 2 MB L2 cache; below that a helper's wake-up costs about what it
+#: saves.
+TEAM_BYTES = 2 * 1024**2
 
 
 def _recover(reference: np.ndarray, vectors: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -221,6 +228,12 @@ class ReducedTwin:
         releases the GIL) and use the newest finished one, so that no update waits for
         one (a real-time loop); cold starts and ``check_stability`` still refresh in
         the calling thread.  :meth:`close` stops the thread.
+    threads : int, optional
+        Threads that share an update's evaluations, the caller included: 1 evaluates in the
+        calling thread alone; more start helper threads (:class:`.point_team.PointTeam`) that
+        sleep between updates and claim chunks of points during them.  The outputs are the same
+        to the bit either way.  Default: 2 when the point maps exceed :data:`TEAM_BYTES` and the
+        process may run on two CPUs, else 1.  :meth:`close` stops the helpers.
     blas : bool, optional
         Whether a large ROM's (:data:`BLAS_COLUMNS`) Hessians are BLAS products, four
         times faster than summed point by point (:func:`.rom_kernels.hessian`).  Default:
@@ -244,7 +257,8 @@ class ReducedTwin:
 
     def __init__(self, config: ArrayConfig | None, rom: ReducedModel, settings: NewtonSettings | None = None,
                  tolerance: float | None = None, fe: ArrayTwin | None = None, second_step: float | None = None,
-                 refresh_distance: float = 0.25, background_refresh: bool = False, blas: bool | None = None):
+                 refresh_distance: float = 0.25, background_refresh: bool = False, blas: bool | None = None,
+                 threads: int | None = None):
         self._config = config or ArrayConfig()
         check_config(rom, self._config)
         self.rom = rom
@@ -284,6 +298,11 @@ class ReducedTwin:
         self._buffers = tuple(np.empty(k) for k in (self._nc, self.n_units, rom.enrichment.shape[1], self.n_units))
         self._points = (self._fmap, self._wmap, self._xi, self._unit, self._held, model.yeoh.c10, model.yeoh.c20,
                         model.yeoh.c30)
+        if threads is None:
+            big = self._fmap.nbytes + self._wmap.nbytes >= TEAM_BYTES
+            cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+            threads = 2 if big and cpus >= 2 else 1
+        self._team = PointTeam(self._points, threads, self.n_units)
         self._layout = (self._driven, np.ascontiguousarray(self._centre), self._maxwell_factor, cfg.thickness,
                         self._output_scale)
         self._bounds = (self._lo, self._hi, env.voltage_min, env.voltage_max, self._driven, self._maxwell_factor)
@@ -345,11 +364,12 @@ class ReducedTwin:
         self.solve(centre, 0.5 * (env.voltage_min + env.voltage_max), check_stability=True)
         if self._nd:  # the biased heights' kernel: one height update on copies of the state, thrown away
             n, t, units = self.n_units, self._tangent, self._driven[:1]
-            heights(self._points, self._z.copy(), self._maxwell, self._displacement.copy(), self._voltage,
-                    self._layout, t.arrays, (t.outputs, t.centre), self._cap_factor, self.second_step, self._buffers,
-                    np.empty(n), np.empty((5, n)), np.empty(7),
-                    (self._forces, units, self._slot[units], self._forces[units].copy(), np.zeros(1)), True, True, 1,
-                    np.empty(4))
+            with self._team as team:
+                heights(self._points, self._z.copy(), self._maxwell, self._displacement.copy(), self._voltage,
+                        self._layout, t.arrays, (t.outputs, t.centre), self._cap_factor, self.second_step,
+                        self._buffers, np.empty(n), np.empty((5, n)), np.empty(7),
+                        (self._forces, units, self._slot[units], self._forces[units].copy(), np.zeros(1)), True,
+                        True, 1, np.empty(4), team.arrays)
         self.reset()
         self.fallbacks.clear()
         self.updates = self.evaluations = self.refreshes = self.resyncs = 0
@@ -448,10 +468,21 @@ class ReducedTwin:
         self._install(*pending.result())
         return 1
 
+    @property
+    def threads(self) -> int:
+        """Threads sharing an update's evaluations, the caller included (:class:`.point_team.PointTeam`)."""
+        return self._team.n_threads
+
+    @property
+    def team(self) -> PointTeam:
+        """The threads sharing the updates' evaluations (how many chunks the helpers took: ``helped``)."""
+        return self._team
+
     def close(self) -> None:
-        """Stop the background refresh thread (if any)."""
+        """Stop the background refresh thread and the helper threads (if any)."""
         if self._pool is not None:
             self._pool.shutdown(wait=True)
+        self._team.close()
 
     def _settle(self, z: np.ndarray, maxwell: np.ndarray, from_state: bool,
                 cancel: Callable[[], bool] | None = None) -> tuple[int, int]:
@@ -650,15 +681,17 @@ class ReducedTwin:
                 result: np.ndarray, info: np.ndarray, cancel: Callable[[], bool] | None) -> tuple[int, int]:
         """One reduced update of ``z`` to ``(d1, v1)`` (:func:`.rom_kernels.update`), converged with refreshed
         Hessians when it is a jump; returns (evaluations, refreshes)."""
-        update(self._points, z, m0, d1, v1, self._layout, self._tangent.arrays, self._cap_factor, self.second_step,
-               self._buffers, m1, result, info)
+        with self._team as team:
+            update(self._points, z, m0, d1, v1, self._layout, self._tangent.arrays, self._cap_factor,
+                   self.second_step, self._buffers, m1, result, info, team.arrays)
         self.evaluations += int(info[4])
         evals, refreshes = int(info[4]), 0
         self._refresh_next = info[5] > 0.0
         if info[6] > self.second_step:  # a jump: the last correction still moved an output, so converge
             more, refreshes = self._settle(z, m1, True, cancel)  # (counts its own evaluations)
-            update(self._points, z, m1, d1, v1, self._layout, self._tangent.arrays, self._cap_factor,
-                   self.second_step, self._buffers, m1, result, info)
+            with self._team as team:
+                update(self._points, z, m1, d1, v1, self._layout, self._tangent.arrays, self._cap_factor,
+                       self.second_step, self._buffers, m1, result, info, team.arrays)
             self.evaluations += int(info[4])
             evals += more + int(info[4])
         return evals, refreshes
@@ -689,9 +722,10 @@ class ReducedTwin:
         per_call = budget if all(load.law.affine for load in loads) else 1  # else G linearised at every iterate
         while True:
             tangent = self._tangent
-            heights(self._points, z, m0, d1, v1, self._layout, tangent.arrays, (tangent.outputs, tangent.centre),
-                    self._cap_factor, self.second_step, self._buffers, m1, result, info, biased, predict, first,
-                    min(per_call, budget), status)
+            with self._team as team:
+                heights(self._points, z, m0, d1, v1, self._layout, tangent.arrays, (tangent.outputs, tangent.centre),
+                        self._cap_factor, self.second_step, self._buffers, m1, result, info, biased, predict, first,
+                        min(per_call, budget), status, team.arrays)
             done = int(status[0])
             self.evaluations += done
             evals, budget, code = evals + done, budget - int(status[1]), status[2]

@@ -41,6 +41,7 @@ import numba
 import numpy as np
 
 from .assembly import Discretisation
+from .atomics import atomic_load, atomic_store, compare_and_swap, fetch_add
 from .kernels import JIT
 from .material import Yeoh, energy_derivatives
 
@@ -106,36 +107,63 @@ def _stress(f, c10, c20, c30, k):
     return c0, c1, c2, det, xv, dy, dy - (a + k) * c1, dy - (a + k) * c0, 2.0 * (a + k) * c2
 
 
-#: Points whose contributions :func:`_gradient` sums in float32 before adding them to the float64 gradient
+#: Points whose contributions an evaluation sums in float32 before adding them to its float64 sums
 #: (``single``): the rounding of a block's sum stays that of a few products.
 SINGLE_BLOCK = 16
 
+#: Points an evaluation hands out at a time (a multiple of :data:`SINGLE_BLOCK`): each chunk's sums are its
+#: own, added in chunk order, so the outputs do not depend on which thread of a team
+#: (:class:`.point_team.PointTeam`) evaluated which chunk.
+CHUNK = 64
 
-@numba.njit(inline="always", **_JIT)
-def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max, single,
-              stress):
-    """Energy, gradient and the rest of :func:`evaluate` summed over the points; with ``single``, the map
-    products (``F = A_p z`` and ``A_p^T P``, nearly all the work) in float32 arithmetic (twice the lanes of
-    a vector instruction), the stress and the sums over blocks of :data:`SINGLE_BLOCK` points in float64.
-    With rows in ``stress`` (one per point), the gradient along ``W`` is left for :func:`_enrichment`: each
-    point's weighted stress ``P`` goes into its row instead (monitor points' rows: zeros)."""
-    np_, _, nc = fmap.shape
-    defer = stress.shape[0] > 0
-    nw = 0 if defer else wmap.shape[2]
-    grad[:] = 0.0
-    grad_m[:] = 0.0
-    grad_w[:] = 0.0
-    det_max[:] = 0.0
+# A team's arrays (:func:`team_arrays`): ``control`` entries
+_GENERATION, _KIND, _SINGLE, _HELPED, _TAKEN, _WAIT, _RUNNING, _LINGER = 0, 1, 2, 3, 4, 5, 6, 7
+TEAM_CONTROL = 8
+# ... the kinds of pass (the job of a generation)
+_GRADIENT, _GRADIENT_DEFER, _ENRICHMENT = 1, 2, 3
+# ... a chunk's state in generation g: 16 g + code; code 0 free, 1 + t claimed by thread t (0: the caller),
+# 8 + t finished by helper t
+_CLAIMED, _FINISHED = 1, 8
+
+
+def team_arrays(n_threads: int, n_points: int, nc: int, nw: int, n_units: int) -> tuple:
+    """The arrays through which ``n_threads`` threads (the caller and its helpers) share an evaluation's points.
+
+    Returns ``(control, state, partial, stress, winner, job_z, job_z32, job_m)``: counters and the
+    published pass (int64), each chunk's state (int64), each thread's sums per chunk, each thread's
+    weighted stresses per point, the thread whose sums a chunk's result is, and the pass's ``z`` (float64
+    and float32) and Maxwell coefficients.
+    """
+    chunks = -(-n_points // CHUNK)
+    width = nc + nw + 2 * n_units + 2
+    return (np.zeros(TEAM_CONTROL, dtype=np.int64), np.zeros(chunks, dtype=np.int64),
+            np.zeros((n_threads, chunks, width)), np.zeros((n_threads, n_points, 6)),
+            np.zeros(chunks, dtype=np.int64), np.zeros(nc), np.zeros(nc, dtype=np.float32), np.zeros(n_units))
+
+
+@numba.njit(**_JIT)
+def _chunk_gradient(fmap, wmap, xi, unit, held, z, z32, maxwell, c10, c20, c30, lo, hi, single, defer, row,
+                    stress):
+    """Points ``lo:hi`` of an evaluation into ``row = [grad, grad_w, grad_m, det_max, energy, sigma_min]``;
+    with ``single``, the map products (``F = A_p z`` and ``A_p^T P``, nearly all the work) in float32
+    arithmetic (twice the lanes of a vector instruction), the stress and the sums over blocks of
+    :data:`SINGLE_BLOCK` points in float64.  With ``defer`` the gradient along ``W`` is left for
+    :func:`_chunk_enrichment`: each point's weighted stress ``P`` goes into its row of ``stress`` instead
+    (monitor points' rows: zeros)."""
+    nc = fmap.shape[2]
+    nw = wmap.shape[2]
+    nu = maxwell.size
+    om, od = nc + nw, nc + nw + nu
+    row[:] = 0.0
+    grad = row[:nc]
+    grad_w = row[nc:om]
     energy = 0.0
     sigma_min = np.inf
     f = np.empty(6)
-    z32 = np.empty(nc if single else 0, dtype=np.float32)
-    for j in range(z32.size):
-        z32[j] = z[j]
-    g32 = np.zeros(z32.size, dtype=np.float32)
-    gw32 = np.zeros(nw if single else 0, dtype=np.float32)
+    g32 = np.zeros(nc if single else 0, dtype=np.float32)
+    gw32 = np.zeros(nw if single and not defer else 0, dtype=np.float32)
     block = 0
-    for p in range(np_):
+    for p in range(lo, hi):
         u = unit[p]
         k = maxwell[u] if u >= 0 else 0.0
         if single:
@@ -143,8 +171,8 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
         else:
             c0, c1, c2, det, xv, _, g0, g1, g2 = _state(fmap, p, z, f, c10, c20, c30, k)
         s00, s11, s01 = 2.0 * g0, 2.0 * g1, g2
-        if u >= 0 and det > det_max[u]:
-            det_max[u] = det
+        if u >= 0 and det > row[od + u]:
+            row[od + u] = det
         if not held[p]:  # smallest in-plane principal Cauchy stress: eigenvalues of C S
             m00 = c0 * s00 + c2 * s01
             m01 = c0 * s01 + c2 * s11
@@ -168,7 +196,7 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
         p4 = w * (f[4] * s00 + f[5] * s01)
         p5 = w * (f[4] * s01 + f[5] * s11)
         if u >= 0:
-            grad_m[u] -= w * det
+            row[om + u] -= w * det
         if defer:
             stress[p, 0], stress[p, 1], stress[p, 2] = p0, p1, p2
             stress[p, 3], stress[p, 4], stress[p, 5] = p3, p4, p5
@@ -190,7 +218,8 @@ def _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_
     if block:
         _flush(g32, grad)
         _flush(gw32, grad_w)
-    return energy, sigma_min
+    row[od + nu] = energy
+    row[od + nu + 1] = sigma_min
 
 
 @numba.njit(inline="always", **_JIT)
@@ -202,15 +231,14 @@ def _add_product(out, maps, p, p0, p1, p2, p3, p4, p5):
                    + p4 * maps[p, 4, j] + p5 * maps[p, 5, j])
 
 
-@numba.njit(inline="always", **_JIT)
-def _enrichment(wmap, xi, stress, grad_w, single):
-    """The gradient along ``W`` that :func:`_gradient` left in ``stress``: ``sum_p A_p^T P_p`` over the
-    enrichment's maps, in the same arithmetic and order."""
-    np_, _, nw = wmap.shape
+@numba.njit(**_JIT)
+def _chunk_enrichment(wmap, xi, stress, lo, hi, single, grad_w):
+    """The gradient along ``W`` of points ``lo:hi`` that :func:`_chunk_gradient` left in ``stress``:
+    ``sum_p A_p^T P_p`` over the enrichment's maps, in the same arithmetic and order, into ``grad_w``."""
     grad_w[:] = 0.0
-    gw32 = np.zeros(nw if single else 0, dtype=np.float32)
+    gw32 = np.zeros(wmap.shape[2] if single else 0, dtype=np.float32)
     block = 0
-    for p in range(np_):
+    for p in range(lo, hi):
         if xi[p] == 0.0:  # a monitor point
             continue
         p0, p1, p2, p3, p4, p5 = stress[p, 0], stress[p, 1], stress[p, 2], stress[p, 3], stress[p, 4], stress[p, 5]
@@ -236,9 +264,161 @@ def _flush(part, total):
 
 
 @numba.njit(**_JIT)
+def _run_chunk(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z, job_z32,
+               job_m, kind, k, t):
+    """Chunk ``k`` of the pass ``kind`` into thread ``t``'s sums (and stresses)."""
+    lo = k * CHUNK
+    hi = min(fmap.shape[0], lo + CHUNK)
+    nc = fmap.shape[2]
+    single = control[_SINGLE] != 0
+    if kind == _ENRICHMENT:
+        _chunk_enrichment(wmap, xi, stress[winner[k]], lo, hi, single, partial[t, k, nc:nc + wmap.shape[2]])
+    else:
+        _chunk_gradient(fmap, wmap, xi, unit, held, job_z, job_z32, job_m, c10, c20, c30, lo, hi, single,
+                        kind == _GRADIENT_DEFER, partial[t, k], stress[t])
+
+
+@numba.njit(**_JIT)
+def _claims(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z, job_z32,
+            job_m, t):
+    """Thread ``t`` evaluates every chunk of the published pass it can claim; returns how many."""
+    generation = atomic_load(control, _GENERATION)
+    kind = atomic_load(control, _KIND)
+    base = 16 * generation
+    done = 0
+    for k in range(state.size):
+        if atomic_load(state, k) != base or compare_and_swap(state, k, base, base + _CLAIMED + t) != base:
+            continue
+        _run_chunk(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z,
+                   job_z32, job_m, kind, k, t)
+        done += 1
+        if t > 0 and compare_and_swap(state, k, base + _CLAIMED + t, base + _FINISHED + t) == base + _CLAIMED + t:
+            fetch_add(control, _HELPED, 1)
+    return done
+
+
+@numba.njit(**_JIT)
+def _assist(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z, job_z32,
+            job_m, t):
+    """A helper's loop: claim chunks of every pass published while ``control[_RUNNING]`` is set; return once
+    it has not been for ``control[_LINGER]`` spins."""
+    seen = -1
+    idle = 0
+    while idle <= atomic_load(control, _LINGER):
+        if not atomic_load(control, _RUNNING):
+            idle += 1
+            continue
+        idle = 0
+        generation = atomic_load(control, _GENERATION)
+        if generation != seen:
+            _claims(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z,
+                    job_z32, job_m, t)
+            seen = generation
+
+
+def assist(points: tuple, team: tuple, thread: int) -> None:
+    """Run as helper ``thread`` (>= 1) of a team: evaluate chunks of the passes its caller publishes while
+    the team runs (:class:`.point_team.PointTeam`; the GIL is released meanwhile).  :func:`update` and
+    :func:`heights` end the run after their last pass, so the helpers are back asleep, the GIL no longer
+    theirs, by the time the caller returns."""
+    _assist(*points, *team, thread)
+
+
+@numba.njit(**_JIT)
+def _publish(control, state, job_z, job_z32, job_m, kind, single, z, maxwell):
+    """Publish a pass: its inputs, every chunk free, then its kind and generation; returns the generation."""
+    if kind != _ENRICHMENT:
+        for j in range(z.size):
+            job_z[j] = z[j]
+            job_z32[j] = z[j]
+        for u in range(maxwell.size):
+            job_m[u] = maxwell[u]
+    generation = control[_GENERATION] + 1
+    for k in range(state.size):
+        atomic_store(state, k, 16 * generation)
+    atomic_store(control, _SINGLE, 1 if single else 0)
+    atomic_store(control, _KIND, kind)
+    atomic_store(control, _GENERATION, generation)
+    return generation
+
+
+@numba.njit(**_JIT)
+def wait_for(state, k, at_least, spins):
+    """Read ``state[k]`` until it is at least ``at_least``, at most ``spins`` times; returns the last value."""
+    s = atomic_load(state, k)
+    for _ in range(spins):
+        if s >= at_least:
+            break
+        s = atomic_load(state, k)
+    return s
+
+
+@numba.njit(**_JIT)
+def _finish(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z, job_z32,
+            job_m, generation, kind, grad, grad_m, grad_w, det_max):
+    """Wait for the chunks helpers are evaluating (each at most ``control[_WAIT]`` spins, then the caller
+    takes it over) and add the chunks' sums in chunk order; returns (energy, smallest principal stress)."""
+    base = 16 * generation
+    for k in range(state.size):
+        s = atomic_load(state, k)
+        if s - base == _CLAIMED or s - base >= _FINISHED:
+            continue
+        s = wait_for(state, k, base + _FINISHED, control[_WAIT])
+        if s - base < _FINISHED and compare_and_swap(state, k, s, base + _CLAIMED) == s:
+            _run_chunk(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z,
+                       job_z32, job_m, kind, k, 0)
+            fetch_add(control, _TAKEN, 1)
+    nc, nw, nu = grad.size, grad_w.size, grad_m.size
+    om, od = nc + nw, nc + nw + nu
+    grad_w[:] = 0.0
+    if kind != _ENRICHMENT:
+        grad[:] = 0.0
+        grad_m[:] = 0.0
+        det_max[:] = 0.0
+    energy = 0.0
+    sigma_min = np.inf
+    for k in range(state.size):
+        code = atomic_load(state, k) - base
+        t = code - _FINISHED if code >= _FINISHED else 0
+        row = partial[t, k]
+        for j in range(nw):
+            grad_w[j] += row[nc + j]
+        if kind == _ENRICHMENT:
+            continue
+        winner[k] = t
+        for j in range(nc):
+            grad[j] += row[j]
+        for u in range(nu):
+            grad_m[u] += row[om + u]
+            det_max[u] = max(det_max[u], row[od + u])
+        energy += row[od + nu]
+        sigma_min = min(sigma_min, row[od + nu + 1])
+    return energy, sigma_min
+
+
+@numba.njit(**_JIT)
+def _pass(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z, job_z32, job_m,
+          kind, single, z, maxwell, grad, grad_m, grad_w, det_max):
+    """One pass over the points by the caller and whichever helpers join: energy, gradient, the gradient along
+    ``W`` (not with ``_GRADIENT_DEFER``: each point's weighted stress kept instead; ``_ENRICHMENT`` sums it
+    from those), the largest ``det C`` per unit and the smallest principal Cauchy stress; with ``single`` the
+    map products in float32 (:func:`_chunk_gradient`)."""
+    generation = _publish(control, state, job_z, job_z32, job_m, kind, single, z, maxwell)
+    _claims(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z, job_z32,
+            job_m, 0)
+    return _finish(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, stress, winner, job_z,
+                   job_z32, job_m, generation, kind, grad, grad_m, grad_w, det_max)
+
+
+@numba.njit(**_JIT)
 def _evaluate(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max):
-    return _gradient(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max, False,
-                     np.empty((0, 6)))
+    chunks = (fmap.shape[0] + CHUNK - 1) // CHUNK
+    nc, nw, nu = fmap.shape[2], wmap.shape[2], maxwell.size
+    return _pass(fmap, wmap, xi, unit, held, c10, c20, c30, np.zeros(TEAM_CONTROL, dtype=np.int64),
+                 np.zeros(chunks, dtype=np.int64), np.zeros((1, chunks, nc + nw + 2 * nu + 2)),
+                 np.zeros((1, fmap.shape[0], 6)), np.zeros(chunks, dtype=np.int64), np.zeros(nc),
+                 np.zeros(nc, dtype=np.float32), np.zeros(nu), _GRADIENT, False, z, maxwell, grad, grad_m, grad_w,
+                 det_max)
 
 
 @numba.njit(inline="always", **_JIT)
@@ -256,7 +436,8 @@ def _output_change(out_q, output_scale, dq):
 @numba.njit(**_JIT)
 def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
             output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m,
-            grad_w, det_max, m1, result, info):
+            grad_w, det_max, m1, result, info, control, state, partial, stress, winner, job_z, job_z32, job_m,
+            release):
     nd = driven.size
     nu = v1.size
     nc = z.size
@@ -273,10 +454,11 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         for j in range(nd + nu):
             acc += sensitivity[i, j] * dp[j]
         z[1 + nd + i] += acc
-    single = fmap.itemsize == 4  # float32 maps: their products in float32 (see _gradient)
-    stress = np.empty((fmap.shape[0], 6))  # the gradient along W only where the update ends (the indicator's)
-    energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w, det_max,
-                                  single, stress)
+    team = (control, state, partial, stress, winner, job_z, job_z32, job_m)
+    single = fmap.itemsize == 4  # float32 maps: their products in float32 (see _chunk_gradient)
+    # the gradient along W only where the update ends (the indicator's): deferred, from the kept stresses
+    energy, sigma_min = _pass(fmap, wmap, xi, unit, held, c10, c20, c30, *team, _GRADIENT_DEFER, single, z, m1,
+                              grad, grad_m, grad_w, det_max)
     dq = np.empty(r)
     for i in range(r):  # Newton correction with the last refreshed H_qq
         acc = 0.0
@@ -290,8 +472,8 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         g1 = grad[1 + nd:].copy()
         for i in range(r):
             z[1 + nd + i] += dq[i]
-        energy, sigma_min = _gradient(fmap, wmap, xi, unit, held, z, m1, c10, c20, c30, grad, grad_m, grad_w,
-                                      det_max, single, stress[:0])
+        energy, sigma_min = _pass(fmap, wmap, xi, unit, held, c10, c20, c30, *team, _GRADIENT, single, z, m1, grad,
+                                  grad_m, grad_w, det_max)
         evals = 2
         a = hqq_inv @ grad[1 + nd:]
         by = hqq_inv @ (grad[1 + nd:] - g1)
@@ -304,7 +486,10 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
             slow = 1.0
         big = last
     else:
-        _enrichment(wmap, xi, stress, grad_w, single)
+        _pass(fmap, wmap, xi, unit, held, c10, c20, c30, *team, _ENRICHMENT, single, z, m1, grad, grad_m,
+              grad_w, det_max)
+    if release:  # the last pass: the helpers may go back to sleep while the rest is computed
+        atomic_store(control, _RUNNING, 0)
     res = 0.0
     de = 0.0
     for i in range(r):
@@ -389,7 +574,7 @@ def classify(d1: np.ndarray, v1: np.ndarray, limit: float, bounds: tuple, tangen
 
 def update(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.ndarray, layout: tuple,
            tangent: tuple, cap_factor: float, second_step: float, buffers: tuple, m1: np.ndarray,
-           result: np.ndarray, info: np.ndarray) -> None:
+           result: np.ndarray, info: np.ndarray, team: tuple) -> None:
     """One update from state ``z = [1, d0, q0]`` (at Maxwell coefficients ``m0``) to ``(d1, v1)``, in place.
 
     Predictor ``q += dq/dp (p1 - p0)``, one evaluation, the Newton correction with
@@ -426,8 +611,13 @@ def update(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.
         reduced residual [N], evaluations, 1.0 if the second step contracted slowly,
         and the relative output change of the last correction (how far from converged
         the evaluated state was).
+    team : tuple
+        :func:`team_arrays` of the threads that share the evaluations' points (the caller's alone for one
+        thread; :class:`.point_team.PointTeam` while its helpers run).  The outputs do not depend on who
+        evaluated which chunk of points.
     """
-    _update(*points, z, m0, d1, v1, *layout, *tangent, cap_factor, second_step, *buffers, m1, result, info)
+    _update(*points, z, m0, d1, v1, *layout, *tangent, cap_factor, second_step, *buffers, m1, result, info, *team,
+            True)
 
 
 def evaluate(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, held: np.ndarray,
@@ -854,7 +1044,20 @@ def _cholesky_solve(lower, b, out):
 def _heights(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
              output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m, grad_w,
              det_max, m1, result, info, outputs, centre_d, forces, units, slots, g0, g1, predict, first, max_updates,
-             status):
+             status, control, state, partial, stress, winner, job_z, job_z32, job_m):
+    _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
+             output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m, grad_w,
+             det_max, m1, result, info, outputs, centre_d, forces, units, slots, g0, g1, predict, first, max_updates,
+             status, control, state, partial, stress, winner, job_z, job_z32, job_m)
+    atomic_store(control, _RUNNING, 0)  # the helpers may go back to sleep
+
+
+@numba.njit(**_JIT)
+def _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
+             output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m, grad_w,
+             det_max, m1, result, info, outputs, centre_d, forces, units, slots, g0, g1, predict, first, max_updates,
+             status, control, state, partial, stress, winner, job_z, job_z32, job_m):
+    """The body of :func:`heights`."""
     nd = driven.size
     nu = v1.size
     nb = units.size
@@ -894,7 +1097,8 @@ def _heights(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, c
                 return
             _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m_prev, d1, v1, driven, centre, maxwell_factor,
                     thickness, output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step,
-                    grad, grad_m, grad_w, det_max, m1, result, info)
+                    grad, grad_m, grad_w, det_max, m1, result, info, control, state, partial, stress, winner, job_z,
+                    job_z32, job_m, False)
             status[0] += info[4]
             status[1] += 1.0
             for u in range(nu):
@@ -952,7 +1156,7 @@ def _heights(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, c
 def heights(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.ndarray, layout: tuple,
             tangent: tuple, condensed: tuple, cap_factor: float, second_step: float, buffers: tuple, m1: np.ndarray,
             result: np.ndarray, info: np.ndarray, biased: tuple, predict: bool, first: bool, max_updates: int,
-            status: np.ndarray) -> None:
+            status: np.ndarray, team: tuple) -> None:
     """Solve for the heights ``w = d1[units]`` of biased units, ``F_k(q(d), d) = G_k(w_k)``, in place.
 
     ``G_k(w) = g0_k + g1_k w`` (affine: a linear, constant or no bias law and a Newmark
@@ -986,9 +1190,11 @@ def heights(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np
         Filled with evaluations, updates, the outcome (0 converged, 1 ``K - dG/dw`` not
         positive definite: a limit point, 2 a jump in ``q``: converge it and call again
         without ``first``, 3 not converged) and the predicted heights [m].
+    team : tuple
+        As for :func:`update`.
     """
     _heights(*points, z, m0, d1, v1, *layout, *tangent, cap_factor, second_step, *buffers, m1, result, info,
-             *condensed, *biased, predict, first, max_updates, status)
+             *condensed, *biased, predict, first, max_updates, status, *team)
 
 
 def hessian_reference(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, z: np.ndarray,

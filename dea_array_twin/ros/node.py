@@ -613,6 +613,8 @@ class TwinNode(Node):
                       rom_second_step=twin.second_step,
                       rom_hessian="BLAS products" if twin.blas_products else "per point",
                       blas_single_threaded=self.blas_single_threaded,
+                      rom_threads=twin.threads, rom_helper_chunks=twin.team.helped,
+                      rom_chunks_taken_over=twin.team.taken_over,
                       rom_validation=twin.rom.validation_warning() or "within its tolerance",
                       rom_updates=twin.updates, rom_refreshes=twin.refreshes, rom_resyncs=twin.resyncs,
                       **{f"rom_fallbacks_{kind}": fallbacks.get(kind, 0)

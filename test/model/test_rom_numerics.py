@@ -78,31 +78,40 @@ def test_reduced_gradient_is_the_derivative_of_the_reduced_energy(reduced_points
     assert np.abs(grad_m).max() > 0 and np.abs(grad_w).max() > 0
 
 
+def _pass(points, team, kind, single, z, maxwell):
+    """One pass of ``kind`` by the calling thread: (energy, sigma_min, grad, grad_m, grad_w, det_max)."""
+    nc, nw, nu = points[0].shape[2], points[1].shape[2], maxwell.size
+    out = (np.empty(nc), np.empty(nu), np.full(nw, np.nan), np.empty(nu))
+    energy, sigma = rom_kernels._pass(*points, *team, kind, single, z, maxwell, *out)
+    return (energy, sigma, *out)
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_an_update_sums_the_gradient_along_w_from_the_stresses_it_kept(reduced_points, dtype):
     """An update's first evaluation leaves the gradient along W (the indicator's) for later, keeping each
-    point's weighted stress (``_gradient`` with rows in ``stress``), and sums it over the enrichment's maps
-    alone when no second evaluation follows (``_enrichment``): the same gradient as an evaluation that
+    point's weighted stress (a ``_GRADIENT_DEFER`` pass), and sums it over the enrichment's maps alone
+    when no second evaluation follows (an ``_ENRICHMENT`` pass): the same gradient as an evaluation that
     sums it, in float64 and in the float32 arithmetic of float32 maps, and the same rest."""
     model, fmap, wmap, xi, unit = reduced_points
     fmap, wmap, xi = fmap.astype(dtype), wmap.astype(dtype), xi.copy()
     xi[:3] = 0.0  # monitor points too
     held = np.zeros(xi.size, dtype=bool)
+    y = model.yeoh
+    points = (fmap, wmap, xi, unit, held, y.c10, y.c20, y.c30)
     z = np.array([1.0, 0.5, -0.3, 0.2, 0.1, -0.4, 0.3, 0.2])
     maxwell = np.array([2e4, 3e4, 0.0])
-    single, y = dtype == np.float32, model.yeoh
-    outs = []
-    for stress in (np.empty((0, 6)), np.full((xi.size, 6), np.nan)):
-        out = (np.empty(8), np.empty(3), np.full(3, np.nan), np.empty(3))
-        energy, sigma = rom_kernels._gradient(fmap, wmap, xi, unit, held, z, maxwell, y.c10, y.c20, y.c30, *out,
-                                              single, stress)
-        if stress.size:
-            assert np.all(stress[:3] == 0.0) and np.isfinite(stress).all()
-            rom_kernels._enrichment(wmap, xi, stress, out[2], single)
-        outs.append((energy, sigma, *out))
-    for now, deferred in zip(*outs):
-        np.testing.assert_allclose(deferred, now, rtol=1e-13, atol=0)
-    assert np.abs(outs[0][4]).max() > 0
+    single = dtype == np.float32
+    team = rom_kernels.team_arrays(1, xi.size, z.size, wmap.shape[2], 3)
+    team[3][:] = np.nan
+    now = _pass(points, team, rom_kernels._GRADIENT, single, z, maxwell)
+    deferred = list(_pass(points, team, rom_kernels._GRADIENT_DEFER, single, z, maxwell))
+    assert np.all(team[3][0, :3] == 0.0) and np.isfinite(team[3][0]).all()
+    assert np.all(deferred[4] == 0.0)
+    out = (np.empty(z.size), np.empty(3), deferred[4], np.empty(3))
+    rom_kernels._pass(*points, *team, rom_kernels._ENRICHMENT, single, z, maxwell, *out)
+    for a, b in zip(now, deferred):
+        np.testing.assert_allclose(b, a, rtol=1e-13, atol=0)
+    assert np.abs(now[4]).max() > 0
 
 
 @pytest.mark.parametrize("blas", [True, False])

@@ -46,6 +46,7 @@ def test_node_with_a_rom_answers_within_its_tolerance_and_publishes_the_fe_check
     # the node's process holds its OpenBLAS (the wheels' two) to one thread; the coarse ROM is too small
     # for BLAS products (BLAS_COLUMNS), so its worker sums the Hessian point by point all the same
     assert values["blas_single_threaded"] == "True" and values["rom_hessian"] == "per point"
+    assert values["rom_threads"] == "1" and values["rom_helper_chunks"] == "0"  # a small ROM: one thread
     deep_fe = ArrayTwin(cfg).solve([0.002, 0.012, 0.003], v)
     assert list(deep.effort) == pytest.approx(deep_fe.force.tolist(), rel=1e-5, abs=1e-8)
     assert after["rom_fallback"].startswith("envelope:")
