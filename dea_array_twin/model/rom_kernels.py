@@ -433,11 +433,29 @@ def _output_change(out_q, output_scale, dq):
     return worst
 
 
+@numba.njit(inline="always", **_JIT)
+def _secant(sensitivity, dp, input_scale, secant_step, reached, predicted):
+    """``S += (q_reached - q_predicted) (W dp)^T / (dp^T W dp)``, ``W = diag(input_scale^-2)``: Broyden's
+    update of the predictor's ``S = dq/dp``, after which ``S dp`` is the step's whole change of ``q``; not
+    for a step shorter than ``secant_step`` (``sqrt(dp^T W dp)``; inf: never)."""
+    wdp = np.empty(dp.size)
+    norm = 0.0
+    for j in range(dp.size):
+        wdp[j] = dp[j] / input_scale[j] ** 2
+        norm += wdp[j] * dp[j]
+    if not norm > secant_step**2:
+        return
+    for i in range(sensitivity.shape[0]):
+        e = (reached[i] - predicted[i]) / norm
+        for j in range(dp.size):
+            sensitivity[i, j] += e * wdp[j]
+
+
 @numba.njit(**_JIT)
 def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
-            output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m,
-            grad_w, det_max, m1, result, info, control, state, partial, stress, winner, job_z, job_z32, job_m,
-            release):
+            output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor,
+            second_step, grad, grad_m, grad_w, det_max, m1, result, info, control, state, partial, stress, winner,
+            job_z, job_z32, job_m, defer, release):
     nd = driven.size
     nu = v1.size
     nc = z.size
@@ -454,11 +472,13 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         for j in range(nd + nu):
             acc += sensitivity[i, j] * dp[j]
         z[1 + nd + i] += acc
+    predicted = z[1 + nd:].copy()
     team = (control, state, partial, stress, winner, job_z, job_z32, job_m)
     single = fmap.itemsize == 4  # float32 maps: their products in float32 (see _chunk_gradient)
-    # the gradient along W only where the update ends (the indicator's): deferred, from the kept stresses
-    energy, sigma_min = _pass(fmap, wmap, xi, unit, held, c10, c20, c30, *team, _GRADIENT_DEFER, single, z, m1,
-                              grad, grad_m, grad_w, det_max)
+    # with defer, the gradient along W (the indicator's) only where the update ends, from the kept stresses
+    first = _GRADIENT_DEFER if defer else _GRADIENT
+    energy, sigma_min = _pass(fmap, wmap, xi, unit, held, c10, c20, c30, *team, first, single, z, m1, grad, grad_m,
+                              grad_w, det_max)
     dq = np.empty(r)
     for i in range(r):  # Newton correction with the last refreshed H_qq
         acc = 0.0
@@ -485,7 +505,7 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         if last > 0.1 * big:
             slow = 1.0
         big = last
-    else:
+    elif defer:
         _pass(fmap, wmap, xi, unit, held, c10, c20, c30, *team, _ENRICHMENT, single, z, m1, grad, grad_m,
               grad_w, det_max)
     if release:  # the last pass: the helpers may go back to sleep while the rest is computed
@@ -496,6 +516,8 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
         z[1 + nd + i] += dq[i]
         res = max(res, abs(grad[1 + nd + i]))
         de += grad[1 + nd + i] * dq[i]
+    if big <= second_step:  # a secant (Broyden) update of dq/dp: it maps this step's dp to the q reached
+        _secant(sensitivity, dp, input_scale, secant_step, z[1 + nd:], predicted)
     # outputs o = (F_driven, C) = (dE/dd, -(eps/t0^2) dE/dm) + dO/dq dq
     result[0, :] = 0.0
     for i in range(nd + nu):
@@ -574,7 +596,7 @@ def classify(d1: np.ndarray, v1: np.ndarray, limit: float, bounds: tuple, tangen
 
 def update(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.ndarray, layout: tuple,
            tangent: tuple, cap_factor: float, second_step: float, buffers: tuple, m1: np.ndarray,
-           result: np.ndarray, info: np.ndarray, team: tuple) -> None:
+           result: np.ndarray, info: np.ndarray, team: tuple, defer: bool = True) -> None:
     """One update from state ``z = [1, d0, q0]`` (at Maxwell coefficients ``m0``) to ``(d1, v1)``, in place.
 
     Predictor ``q += dq/dp (p1 - p0)``, one evaluation, the Newton correction with
@@ -591,12 +613,16 @@ def update(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.
     d1, v1 : ndarray, shape (n_units,)
         The command: displacements [m] (used for driven units), voltages [V].
     layout : tuple
-        ``(driven, centre, maxwell_factor, thickness, output_scale)``: driven unit
-        indices, the rows of ``[1, d, q]`` giving each unit's centre deflection,
-        ``eps / (2 t0^2)``, ``t0``, and the scale of each output (driven forces [N],
-        capacitances [F]).
+        ``(driven, centre, maxwell_factor, thickness, output_scale, input_scale, secant_step)``:
+        driven unit indices, the rows of ``[1, d, q]`` giving each unit's centre deflection,
+        ``eps / (2 t0^2)``, ``t0``, the scale of each output (driven forces [N], capacitances
+        [F]), the scale of each input (driven displacements [m], Maxwell coefficients [Pa]; inf:
+        not counted) and the shortest step (in those scales) after which an update that ends
+        converged corrects ``dq/dp`` by a secant (Broyden) update, so that it maps the step to
+        the change of ``q`` it made (inf: never).
     tangent : tuple
-        ``(dq/dp, H_qq^-1, dO/dq, H_wq, indicator matrix)`` of the last refresh.
+        ``(dq/dp, H_qq^-1, dO/dq, H_wq, indicator matrix)`` of the last refresh (``dq/dp`` is
+        updated in place by the secant updates).
     cap_factor : float
         ``eps / t0^2`` [F/m^3]: capacitance per ``-dE/dm``.
     buffers : tuple
@@ -615,9 +641,13 @@ def update(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.
         :func:`team_arrays` of the threads that share the evaluations' points (the caller's alone for one
         thread; :class:`.point_team.PointTeam` while its helpers run).  The outputs do not depend on who
         evaluated which chunk of points.
+    defer : bool
+        Sum the gradient along ``W`` (the indicator's) after the last evaluation, from the stresses the
+        first kept (cheaper when a second evaluation is likely), or with the first evaluation (cheaper
+        when it is not).
     """
     _update(*points, z, m0, d1, v1, *layout, *tangent, cap_factor, second_step, *buffers, m1, result, info, *team,
-            True)
+            defer, True)
 
 
 def evaluate(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, held: np.ndarray,
@@ -1042,21 +1072,24 @@ def _cholesky_solve(lower, b, out):
 
 @numba.njit(**_JIT)
 def _heights(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
-             output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m, grad_w,
-             det_max, m1, result, info, outputs, centre_d, forces, units, slots, g0, g1, predict, first, max_updates,
-             status, control, state, partial, stress, winner, job_z, job_z32, job_m):
+             output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor,
+             second_step, grad, grad_m, grad_w, det_max, m1, result, info, outputs, centre_d, forces, units, slots,
+             g0, g1, predict, first, max_updates, status, control, state, partial, stress, winner, job_z, job_z32,
+             job_m, defer):
     _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
-             output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m, grad_w,
-             det_max, m1, result, info, outputs, centre_d, forces, units, slots, g0, g1, predict, first, max_updates,
-             status, control, state, partial, stress, winner, job_z, job_z32, job_m)
+             output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor,
+             second_step, grad, grad_m, grad_w, det_max, m1, result, info, outputs, centre_d, forces, units, slots,
+             g0, g1, predict, first, max_updates, status, control, state, partial, stress, winner, job_z, job_z32,
+             job_m, defer)
     atomic_store(control, _RUNNING, 0)  # the helpers may go back to sleep
 
 
 @numba.njit(**_JIT)
 def _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
-             output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step, grad, grad_m, grad_w,
-             det_max, m1, result, info, outputs, centre_d, forces, units, slots, g0, g1, predict, first, max_updates,
-             status, control, state, partial, stress, winner, job_z, job_z32, job_m):
+             output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor,
+             second_step, grad, grad_m, grad_w, det_max, m1, result, info, outputs, centre_d, forces, units, slots,
+             g0, g1, predict, first, max_updates, status, control, state, partial, stress, winner, job_z, job_z32,
+             job_m, defer):
     """The body of :func:`heights`."""
     nd = driven.size
     nu = v1.size
@@ -1096,9 +1129,9 @@ def _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, c
                 status[2] = 3.0  # not converged
                 return
             _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m_prev, d1, v1, driven, centre, maxwell_factor,
-                    thickness, output_scale, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor, second_step,
-                    grad, grad_m, grad_w, det_max, m1, result, info, control, state, partial, stress, winner, job_z,
-                    job_z32, job_m, False)
+                    thickness, output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator,
+                    cap_factor, second_step, grad, grad_m, grad_w, det_max, m1, result, info, control, state,
+                    partial, stress, winner, job_z, job_z32, job_m, defer, False)
             status[0] += info[4]
             status[1] += 1.0
             for u in range(nu):
@@ -1156,7 +1189,7 @@ def _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, c
 def heights(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.ndarray, layout: tuple,
             tangent: tuple, condensed: tuple, cap_factor: float, second_step: float, buffers: tuple, m1: np.ndarray,
             result: np.ndarray, info: np.ndarray, biased: tuple, predict: bool, first: bool, max_updates: int,
-            status: np.ndarray, team: tuple) -> None:
+            status: np.ndarray, team: tuple, defer: bool = True) -> None:
     """Solve for the heights ``w = d1[units]`` of biased units, ``F_k(q(d), d) = G_k(w_k)``, in place.
 
     ``G_k(w) = g0_k + g1_k w`` (affine: a linear, constant or no bias law and a Newmark
@@ -1190,11 +1223,11 @@ def heights(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np
         Filled with evaluations, updates, the outcome (0 converged, 1 ``K - dG/dw`` not
         positive definite: a limit point, 2 a jump in ``q``: converge it and call again
         without ``first``, 3 not converged) and the predicted heights [m].
-    team : tuple
+    team, defer
         As for :func:`update`.
     """
     _heights(*points, z, m0, d1, v1, *layout, *tangent, cap_factor, second_step, *buffers, m1, result, info,
-             *condensed, *biased, predict, first, max_updates, status, *team)
+             *condensed, *biased, predict, first, max_updates, status, *team, defer)
 
 
 def hessian_reference(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, z: np.ndarray,
