@@ -200,7 +200,9 @@ def time_updates(cfg: ArrayConfig, rom, d: np.ndarray, v: np.ndarray, background
     twin.close()
     return np.array(ms), np.array(cpu), {"evaluations": twin.evaluations - start[0],
                                          "refreshes": twin.refreshes - start[1],
-                                         "fallbacks": sum(twin.fallbacks.values()), "outputs": outputs}
+                                         "fallbacks": sum(twin.fallbacks.values()), "outputs": outputs,
+                                         "threads": twin.threads, "helped": twin.team.helped,
+                                         "taken_over": twin.team.taken_over}
 
 
 #: Seed of ``--revalidate``'s commands: ``rom train`` draws its training, held-out and calibration samples with
@@ -385,8 +387,16 @@ def main() -> None:
                   f"{ms.max():.2f} ms (CPU: median {np.median(cpu):.3f}, mean {cpu.mean():.3f} ms); "
                   f"{sum(r[2]['evaluations'] for r in runs) / n:.2f} evaluations per update, "
                   f"{sum(r[2]['refreshes'] for r in runs)} refreshes, {sum(r[2]['fallbacks'] for r in runs)} "
-                  f"fallbacks in {n} updates; errors of these updates against the FE: force max "
+                  f"fallbacks in {n} updates; {helpers(runs)}errors of these updates against the FE: force max "
                   f"{max(e[0] for e in errs):.4%}, capacitance max {max(e[1] for e in errs):.4%}; {load()}")
+
+
+def helpers(runs: list) -> str:
+    """What the twins' helper threads did (empty for twins with one thread)."""
+    if runs[0][2]["threads"] == 1:
+        return ""
+    return (f"{runs[0][2]['threads']} threads, the helpers took {sum(r[2]['helped'] for r in runs)} chunks "
+            f"({sum(r[2]['taken_over'] for r in runs)} taken over by the caller); ")
 
 
 if __name__ == "__main__":
