@@ -25,6 +25,29 @@ DOME_W = [0.0005 * i for i in range(33)]
 DOME = {"type": "table", "position": DOME_W, "force": [0.2035 + 0.08 * math.tanh((w - 0.007) / 0.001) for w in DOME_W]}
 
 
+
+def coarse_point_maps(count: int, seed: int):
+    """Point maps of ``count`` random quadrature points of the coarse array over ``[1, d, q]`` (a flat state,
+    2 lifting-like and 5 random vectors) and 3 enrichment vectors, with random positive weights: the
+    reduced model's kernels' inputs without training one.  Returns ``(model, fmap, wmap, xi, unit)``."""
+    import numpy as np
+
+    from dea_array_twin.model import rom_kernels
+    from dea_array_twin.model.membrane import MembraneModel
+
+    model = MembraneModel(ArrayConfig(**COARSE))
+    rng = np.random.default_rng(seed)
+    ne, nq = model.disc.weight.shape
+    flat = np.flatnonzero(rng.permutation(ne * nq) < count)
+    elements, points = np.divmod(flat, nq)
+    vectors = np.hstack([model.flat_state()[:, None], 1e-3 * rng.normal(size=(model.disc.n_dofs, 7))])
+    fmap = rom_kernels.point_maps(model.disc, elements, points, vectors)
+    wmap = rom_kernels.point_maps(model.disc, elements, points, 1e-3 * rng.normal(size=(model.disc.n_dofs, 3)))
+    xi = model.thickness * model.disc.weight[elements, points] * rng.uniform(0.5, 2.0, elements.size)
+    unit = np.ascontiguousarray(model.mesh.element_unit[elements])
+    return model, fmap, wmap, xi, unit
+
+
 @pytest.fixture
 def make_twin():
     """``make_twin(settings=None, **config_changes)`` -> a fresh ArrayTwin."""

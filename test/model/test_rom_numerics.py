@@ -3,12 +3,10 @@ energy's gradient and Hessian (model/rom_kernels.py) against finite differences 
 
 import numpy as np
 import pytest
-from conftest import COARSE
+from conftest import coarse_point_maps
 
-from dea_array_twin import ArrayConfig
 from dea_array_twin.model import rom_kernels
 from dea_array_twin.model.ecsw import sparse_nnls
-from dea_array_twin.model.membrane import MembraneModel
 
 
 def test_sparse_nnls_finds_a_sparse_quadrature_and_a_positive_quadrature_rule():
@@ -37,19 +35,8 @@ def test_sparse_nnls_finds_a_sparse_quadrature_and_a_positive_quadrature_rule():
 
 @pytest.fixture(scope="module")
 def reduced_points():
-    """Point maps of 60 quadrature points of the coarse array over [1, d, q] (a flat state, 2 lifting-like
-    and 5 random vectors) and 3 enrichment vectors, with random positive weights."""
-    model = MembraneModel(ArrayConfig(**COARSE))
-    rng = np.random.default_rng(5)
-    ne, nq = model.disc.weight.shape
-    flat = np.flatnonzero(rng.permutation(ne * nq) < 60)
-    elements, points = np.divmod(flat, nq)
-    vectors = np.hstack([model.flat_state()[:, None], 1e-3 * rng.normal(size=(model.disc.n_dofs, 7))])
-    fmap = rom_kernels.point_maps(model.disc, elements, points, vectors)
-    wmap = rom_kernels.point_maps(model.disc, elements, points, 1e-3 * rng.normal(size=(model.disc.n_dofs, 3)))
-    xi = model.thickness * model.disc.weight[elements, points] * rng.uniform(0.5, 2.0, elements.size)
-    unit = model.mesh.element_unit[elements]
-    return model, fmap, wmap, xi, unit
+    """Point maps of 60 quadrature points of the coarse array (:func:`conftest.coarse_point_maps`)."""
+    return coarse_point_maps(60, 5)
 
 
 def test_reduced_gradient_is_the_derivative_of_the_reduced_energy(reduced_points):

@@ -6,31 +6,20 @@ import time
 
 import numpy as np
 import pytest
-from conftest import COARSE
+from conftest import coarse_point_maps
 
-from dea_array_twin import ArrayConfig
 from dea_array_twin.model import rom_kernels as rk
-from dea_array_twin.model.membrane import MembraneModel
 from dea_array_twin.model.point_team import MAX_THREADS, PointTeam
 from dea_array_twin.model.reduced_twin import TEAM_BYTES, ReducedTwin
 
 
 @pytest.fixture(scope="module")
 def points():
-    """Maps of 300 quadrature points of the coarse array (5 chunks, the last one short) over [1, d, q]
-    (a flat state and 7 random vectors) and 3 enrichment vectors; 4 monitor points."""
-    model = MembraneModel(ArrayConfig(**COARSE))
-    rng = np.random.default_rng(7)
-    ne, nq = model.disc.weight.shape
-    flat = np.flatnonzero(rng.permutation(ne * nq) < 300)
-    elements, index = np.divmod(flat, nq)
-    vectors = np.hstack([model.flat_state()[:, None], 1e-3 * rng.normal(size=(model.disc.n_dofs, 7))])
-    fmap = rk.point_maps(model.disc, elements, index, vectors)
-    wmap = rk.point_maps(model.disc, elements, index, 1e-3 * rng.normal(size=(model.disc.n_dofs, 3)))
-    xi = model.thickness * model.disc.weight[elements, index] * rng.uniform(0.5, 2.0, elements.size)
+    """Maps of 300 quadrature points of the coarse array (5 chunks, the last one short; 4 monitor points,
+    a tenth held) as an update's ``points`` tuple."""
+    model, fmap, wmap, xi, unit = coarse_point_maps(300, 7)
     xi[[0, 70, 130, 299]] = 0.0
-    unit = np.ascontiguousarray(model.mesh.element_unit[elements])
-    held = rng.random(elements.size) < 0.1
+    held = np.random.default_rng(8).random(xi.size) < 0.1
     y = model.yeoh
     return fmap, wmap, xi, unit, held, y.c10, y.c20, y.c30
 
