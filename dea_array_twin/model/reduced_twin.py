@@ -264,6 +264,8 @@ class ReducedTwin:
         not converge), ``"snap"`` (a biased equilibrium at a limit point: ``K - dG/dw`` not
         positive definite) and ``"contact"`` (an indenter with unilateral contact that would
         pull, or is lifted off).
+    team : PointTeam
+        The threads sharing the updates' evaluations (``helped``: the chunks the helpers took).
     updates, evaluations, refreshes, resyncs : int
         Reduced updates answered, gradient evaluations, Hessian refreshes and restarts
         from an FE state (:meth:`request_resync`) so far.
@@ -316,7 +318,7 @@ class ReducedTwin:
             big = self._fmap.nbytes + self._wmap.nbytes >= TEAM_BYTES
             cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
             threads = 2 if big and cpus >= 2 else 1
-        self._team = PointTeam(self._points, threads, self.n_units)
+        self.team = PointTeam(self._points, threads, self.n_units)
         self._layout = (self._driven, np.ascontiguousarray(self._centre), self._maxwell_factor, cfg.thickness,
                         self._output_scale, self._range, SECANT_STEP if not background_refresh else np.inf)
         self._bounds = (self._lo, self._hi, env.voltage_min, env.voltage_max, self._driven, self._maxwell_factor)
@@ -379,7 +381,7 @@ class ReducedTwin:
         self.solve(centre, 0.5 * (env.voltage_min + env.voltage_max), check_stability=True)
         if self._nd:  # the biased heights' kernel: one height update on copies of the state, thrown away
             n, t, units = self.n_units, self._tangent, self._driven[:1]
-            with self._team as team:
+            with self.team as team:
                 heights(self._points, self._z.copy(), self._maxwell, self._displacement.copy(), self._voltage,
                         self._layout, t.arrays, (t.outputs, t.centre), self._cap_factor, self.second_step,
                         self._buffers, np.empty(n), np.empty((5, n)), np.empty(7),
@@ -486,18 +488,13 @@ class ReducedTwin:
     @property
     def threads(self) -> int:
         """Threads sharing an update's evaluations, the caller included (:class:`.point_team.PointTeam`)."""
-        return self._team.n_threads
-
-    @property
-    def team(self) -> PointTeam:
-        """The threads sharing the updates' evaluations (how many chunks the helpers took: ``helped``)."""
-        return self._team
+        return self.team.n_threads
 
     def close(self) -> None:
         """Stop the background refresh thread and the helper threads (if any)."""
         if self._pool is not None:
             self._pool.shutdown(wait=True)
-        self._team.close()
+        self.team.close()
 
     def _settle(self, z: np.ndarray, maxwell: np.ndarray, from_state: bool,
                 cancel: Callable[[], bool] | None = None) -> tuple[int, int]:
@@ -704,7 +701,7 @@ class ReducedTwin:
         """One reduced update of ``z`` to ``(d1, v1)`` (:func:`.rom_kernels.update`), converged with refreshed
         Hessians when it is a jump; returns (evaluations, refreshes)."""
         defer = self._seconds > DEFER_SHARE
-        with self._team as team:
+        with self.team as team:
             update(self._points, z, m0, d1, v1, self._layout, self._tangent.arrays, self._cap_factor,
                    self.second_step, self._buffers, m1, result, info, team.arrays, defer)
         self.evaluations += int(info[4])
@@ -713,7 +710,7 @@ class ReducedTwin:
         self._refresh_next = info[5] > 0.0
         if info[6] > self.second_step:  # a jump: the last correction still moved an output, so converge
             more, refreshes = self._settle(z, m1, True, cancel)  # (counts its own evaluations)
-            with self._team as team:
+            with self.team as team:
                 update(self._points, z, m1, d1, v1, self._layout, self._tangent.arrays, self._cap_factor,
                        self.second_step, self._buffers, m1, result, info, team.arrays, defer)
             self.evaluations += int(info[4])
@@ -746,7 +743,7 @@ class ReducedTwin:
         per_call = budget if all(load.law.affine for load in loads) else 1  # else G linearised at every iterate
         while True:
             tangent = self._tangent
-            with self._team as team:
+            with self.team as team:
                 heights(self._points, z, m0, d1, v1, self._layout, tangent.arrays, (tangent.outputs, tangent.centre),
                         self._cap_factor, self.second_step, self._buffers, m1, result, info, biased, predict, first,
                         min(per_call, budget), status, team.arrays, self._seconds > DEFER_SHARE)

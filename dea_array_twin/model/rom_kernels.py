@@ -318,9 +318,8 @@ def _assist(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, 
 
 def assist(points: tuple, team: tuple, thread: int) -> None:
     """Run as helper ``thread`` (>= 1) of a team: evaluate chunks of the passes its caller publishes while
-    the team runs (:class:`.point_team.PointTeam`; the GIL is released meanwhile).  :func:`update` and
-    :func:`heights` end the run after their last pass, so the helpers are back asleep, the GIL no longer
-    theirs, by the time the caller returns."""
+    the team runs, and return once it has not run for ``control[_LINGER]`` spins
+    (:class:`.point_team.PointTeam`; the GIL is released meanwhile)."""
     _assist(*points, *team, thread)
 
 
@@ -410,17 +409,6 @@ def _pass(fmap, wmap, xi, unit, held, c10, c20, c30, control, state, partial, st
                    job_z32, job_m, generation, kind, grad, grad_m, grad_w, det_max)
 
 
-@numba.njit(**_JIT)
-def _evaluate(fmap, wmap, xi, unit, held, z, maxwell, c10, c20, c30, grad, grad_m, grad_w, det_max):
-    chunks = (fmap.shape[0] + CHUNK - 1) // CHUNK
-    nc, nw, nu = fmap.shape[2], wmap.shape[2], maxwell.size
-    return _pass(fmap, wmap, xi, unit, held, c10, c20, c30, np.zeros(TEAM_CONTROL, dtype=np.int64),
-                 np.zeros(chunks, dtype=np.int64), np.zeros((1, chunks, nc + nw + 2 * nu + 2)),
-                 np.zeros((1, fmap.shape[0], 6)), np.zeros(chunks, dtype=np.int64), np.zeros(nc),
-                 np.zeros(nc, dtype=np.float32), np.zeros(nu), _GRADIENT, False, z, maxwell, grad, grad_m, grad_w,
-                 det_max)
-
-
 @numba.njit(inline="always", **_JIT)
 def _output_change(out_q, output_scale, dq):
     """Largest change of an output (relative to its scale) that the correction ``dq`` makes."""
@@ -455,7 +443,7 @@ def _secant(sensitivity, dp, input_scale, secant_step, reached, predicted):
 def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
             output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor,
             second_step, grad, grad_m, grad_w, det_max, m1, result, info, control, state, partial, stress, winner,
-            job_z, job_z32, job_m, defer, release):
+            job_z, job_z32, job_m, defer):
     nd = driven.size
     nu = v1.size
     nc = z.size
@@ -508,8 +496,6 @@ def _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, ce
     elif defer:
         _pass(fmap, wmap, xi, unit, held, c10, c20, c30, *team, _ENRICHMENT, single, z, m1, grad, grad_m,
               grad_w, det_max)
-    if release:  # the last pass: the helpers may go back to sleep while the rest is computed
-        atomic_store(control, _RUNNING, 0)
     res = 0.0
     de = 0.0
     for i in range(r):
@@ -647,7 +633,7 @@ def update(points: tuple, z: np.ndarray, m0: np.ndarray, d1: np.ndarray, v1: np.
         when it is not).
     """
     _update(*points, z, m0, d1, v1, *layout, *tangent, cap_factor, second_step, *buffers, m1, result, info, *team,
-            defer, True)
+            defer)
 
 
 def evaluate(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarray, held: np.ndarray,
@@ -676,9 +662,9 @@ def evaluate(fmap: np.ndarray, wmap: np.ndarray, xi: np.ndarray, unit: np.ndarra
         ``grad_m`` (n_units), ``grad_w`` (nw), ``det_max`` (n_units; largest ``det C``
         over the unit's points, sampled and monitor).
     """
-    grad, grad_m, grad_w, det_max = out
-    return _evaluate(fmap, wmap, xi, unit, held, z, maxwell, yeoh.c10, yeoh.c20, yeoh.c30,
-                     grad, grad_m, grad_w, det_max)
+    team = team_arrays(1, fmap.shape[0], fmap.shape[2], wmap.shape[2], maxwell.size)  # the caller alone
+    return _pass(fmap, wmap, xi, unit, held, yeoh.c10, yeoh.c20, yeoh.c30, *team, _GRADIENT, False, z, maxwell,
+                 *out)
 
 
 @numba.njit(**_JIT)
@@ -1076,21 +1062,6 @@ def _heights(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, c
              second_step, grad, grad_m, grad_w, det_max, m1, result, info, outputs, centre_d, forces, units, slots,
              g0, g1, predict, first, max_updates, status, control, state, partial, stress, winner, job_z, job_z32,
              job_m, defer):
-    _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
-             output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor,
-             second_step, grad, grad_m, grad_w, det_max, m1, result, info, outputs, centre_d, forces, units, slots,
-             g0, g1, predict, first, max_updates, status, control, state, partial, stress, winner, job_z, job_z32,
-             job_m, defer)
-    atomic_store(control, _RUNNING, 0)  # the helpers may go back to sleep
-
-
-@numba.njit(**_JIT)
-def _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, centre, maxwell_factor, thickness,
-             output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator, cap_factor,
-             second_step, grad, grad_m, grad_w, det_max, m1, result, info, outputs, centre_d, forces, units, slots,
-             g0, g1, predict, first, max_updates, status, control, state, partial, stress, winner, job_z, job_z32,
-             job_m, defer):
-    """The body of :func:`heights`."""
     nd = driven.size
     nu = v1.size
     nb = units.size
@@ -1131,7 +1102,7 @@ def _balance(fmap, wmap, xi, unit, held, c10, c20, c30, z, m0, d1, v1, driven, c
             _update(fmap, wmap, xi, unit, held, c10, c20, c30, z, m_prev, d1, v1, driven, centre, maxwell_factor,
                     thickness, output_scale, input_scale, secant_step, sensitivity, hqq_inv, out_q, h_wq, indicator,
                     cap_factor, second_step, grad, grad_m, grad_w, det_max, m1, result, info, control, state,
-                    partial, stress, winner, job_z, job_z32, job_m, defer, False)
+                    partial, stress, winner, job_z, job_z32, job_m, defer)
             status[0] += info[4]
             status[1] += 1.0
             for u in range(nu):
